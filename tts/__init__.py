@@ -1,0 +1,98 @@
+"""tts: Test-time Sparsity for diffusion transformers (Ji et al., CVPR 2026).
+
+``tts.accelerate(model, directions=..., plan=...)`` hooks every residual branch of the model's
+transformer blocks; before each denoising forward a plan (static) or a pruner (learned) decides, per
+sample and branch, whether to compute it or to reuse a cached output from the *forward* (an earlier
+block of the same kind), *timestep* (this branch at the previous computed step) or *rollout* (this
+branch at the same step of the previous policy call) direction.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable, Iterable, Mapping, Optional, Union
+
+import torch.nn as nn
+
+from . import plans
+from .engine import Accelerator, discover_sites
+from .plans import Plan, check_directions, check_sparsity
+from .spec import BlockSpec, BranchSpec, Lazy, Target, model_adapters, register_block_family, register_model_adapter
+from .summary import Summary
+
+__all__ = [
+    "accelerate",
+    "Accelerator",
+    "BlockSpec",
+    "BranchSpec",
+    "Lazy",
+    "Plan",
+    "Summary",
+    "Target",
+    "plans",
+    "register_block_family",
+    "register_model_adapter",
+    "resolve_target",
+]
+__version__ = "0.1.0"
+
+BlocksArg = Optional[Mapping[str, Union[BlockSpec, Callable[[nn.Module], BlockSpec]]]]
+
+
+def resolve_target(model: Any, blocks: BlocksArg = None) -> Target:
+    """Find the denoiser, its branch sites and call/episode boundaries of ``model``."""
+    from . import adapters  # noqa: F401  (registers the built-in families)
+
+    if blocks is not None:
+        if not isinstance(model, nn.Module):
+            raise TypeError(f"blocks= needs an nn.Module, got {type(model).__name__}")
+        return Target(denoiser=model, sites=discover_sites(model, blocks), description="user blocks")
+    for _, adapt in model_adapters():
+        target = adapt(model)
+        if target is not None:
+            return target
+    if isinstance(model, nn.Module):
+        return Target(denoiser=model, sites=discover_sites(model), description=type(model).__name__)
+    raise TypeError(
+        f"tts.accelerate expects an nn.Module, a Diffusion Policy policy or a diffusers pipeline; "
+        f"got {type(model).__name__}"
+    )
+
+
+def accelerate(
+    model: Any,
+    directions: Iterable[str] = ("forward", "timestep", "rollout"),
+    *,
+    plan: Optional[Plan] = None,
+    sparsity: Optional[float] = None,
+    blocks: BlocksArg = None,
+    fast_dense: bool = True,
+) -> Accelerator:
+    """Install test-time sparsity on ``model`` and return the :class:`Accelerator`.
+
+    directions: any subset of ``("forward", "timestep", "rollout")``.
+    plan: a :class:`tts.plans.Plan`; default dense (outputs bit-identical) or, with ``sparsity``,
+        ``plans.uniform(sparsity, "timestep")`` (FORA-style evenly spread full steps).
+    sparsity: target fraction of reused (step, branch) decisions, in [0, 1).
+    blocks: ``{glob over module names: BlockSpec}`` for blocks tts does not recognise.
+    fast_dense: when a block computes every branch for every sample and nothing needs caching,
+        call the block's own forward (keeps PyTorch fast paths, bit-identical outputs).
+    """
+    dirs = check_directions(directions)
+    if sparsity is not None:
+        sparsity = check_sparsity(sparsity)
+        if plan is not None:
+            raise ValueError("give either plan= or sparsity= (which builds a uniform plan), not both")
+    target = resolve_target(model, blocks)
+    if "rollout" in dirs and target.supports_rollout is False:
+        raise ValueError(
+            f"{target.description or type(model).__name__} is not used in rollouts (it is an image "
+            "generator), so the 'rollout' direction does not apply: use "
+            "directions=('forward', 'timestep')"
+        )
+    if plan is None:
+        if sparsity is None or sparsity == 0.0:
+            plan = plans.dense()
+        else:
+            if not dirs:
+                raise ValueError("sparsity > 0 needs at least one direction to reuse from")
+            plan = plans.uniform(sparsity, "timestep" if "timestep" in dirs else dirs[0])
+    return Accelerator(target, dirs, plan, fast_dense=fast_dense)

@@ -1,0 +1,265 @@
+"""Plans: a decision per (sample, denoising step, branch): compute, or reuse from a direction.
+
+Decision codes (also the pruner head's option order, as in the paper's mask M = (C, F, T, R)):
+
+====  ==========  ==================================================================================
+code  name        meaning
+====  ==========  ==================================================================================
+0     compute     run the branch; refresh the forward/timestep/rollout caches with its output
+1     forward     reuse the latest computed branch of the same kind earlier in this forward
+                  (it wraps around to the previous step's last blocks: "zig-zag")
+2     timestep    reuse this branch at the most recent step of this call where it was computed
+3     rollout     reuse this branch at the same step index in the previous sampling call of the episode
+====  ==========  ==================================================================================
+
+A plan never needs to know the number of steps in advance: the engine asks it for step ``k`` as the
+sampling loop reaches it. Step 0 (and the first call of an episode when the rollout direction is on)
+is always computed by the engine, whatever the plan says.
+"""
+from __future__ import annotations
+
+import math
+from typing import Iterable, Sequence, Union
+
+import torch
+
+__all__ = [
+    "COMPUTE",
+    "FORWARD",
+    "TIMESTEP",
+    "ROLLOUT",
+    "DIRECTIONS",
+    "CODE_NAMES",
+    "Plan",
+    "DensePlan",
+    "IntervalPlan",
+    "UniformPlan",
+    "TensorPlan",
+    "dense",
+    "every_n",
+    "uniform",
+    "from_tensor",
+    "check_directions",
+    "check_sparsity",
+]
+
+COMPUTE, FORWARD, TIMESTEP, ROLLOUT = 0, 1, 2, 3
+DIRECTIONS = {"forward": FORWARD, "timestep": TIMESTEP, "rollout": ROLLOUT}
+CODE_NAMES = ("compute", "forward", "timestep", "rollout")
+_LETTERS = {"C": COMPUTE, "F": FORWARD, "T": TIMESTEP, "R": ROLLOUT}
+
+
+def check_directions(directions: Iterable[str]) -> tuple[str, ...]:
+    """Validate direction names; returns them in canonical order."""
+    if isinstance(directions, str):
+        directions = (directions,)
+    names = tuple(directions)
+    unknown = [d for d in names if d not in DIRECTIONS]
+    if unknown:
+        raise ValueError(
+            f"unknown direction(s) {unknown}; choose any subset of {tuple(DIRECTIONS)}"
+        )
+    return tuple(d for d in DIRECTIONS if d in names)
+
+
+def check_sparsity(sparsity: float) -> float:
+    """Sparsity is the fraction of (step, branch) decisions that reuse; it must lie in [0, 1)."""
+    s = float(sparsity)
+    if not (0.0 <= s < 1.0) or math.isnan(s):
+        raise ValueError(f"sparsity must be in [0, 1), got {sparsity!r}")
+    return s
+
+
+def _accumulator_hits(i: int, rate: float) -> bool:
+    """True at evenly spread indices with density ``rate``; index 0 always hits."""
+    eps = 1e-9
+    return math.floor(i * rate + eps) > math.floor((i - 1) * rate + eps)
+
+
+class Plan:
+    """Base class of decision sources. Subclasses implement :meth:`step`.
+
+    ``step(k, batch)`` returns an int8 CPU tensor of shape [1, nb] (same for every sample) or
+    [batch, nb]. ``uses`` is the set of decision codes the plan may emit (validated against the
+    enabled directions when the plan is bound).
+    """
+
+    uses: frozenset[int] = frozenset({COMPUTE})
+
+    def bind(self, num_branches: int, branch_kinds: Sequence[str]) -> None:
+        """Called once by the engine with the model's branch layout."""
+        self.num_branches = num_branches
+        self.branch_kinds = tuple(branch_kinds)
+
+    def begin_call(self, call_index: int, batch: int) -> None:
+        """Called at the start of every sampling call (before step 0)."""
+
+    def step(self, k: int, batch: int) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @property
+    def may_reuse(self) -> bool:
+        return bool(self.uses - {COMPUTE})
+
+    def describe(self) -> str:
+        return type(self).__name__
+
+
+class _PerStepPlan(Plan):
+    """A plan identical for every sample and every call: rows are memoised per step."""
+
+    def bind(self, num_branches: int, branch_kinds: Sequence[str]) -> None:
+        super().bind(num_branches, branch_kinds)
+        self._rows: dict[int, torch.Tensor] = {}
+
+    def step(self, k: int, batch: int) -> torch.Tensor:
+        row = self._rows.get(k)
+        if row is None:
+            row = torch.tensor([self._row(k)], dtype=torch.int8)
+            self._rows[k] = row
+        return row
+
+    def _row(self, k: int) -> list[int]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class DensePlan(_PerStepPlan):
+    """Compute every branch at every step (the model's outputs stay bit-identical)."""
+
+    uses = frozenset({COMPUTE})
+
+    def _row(self, k: int) -> list[int]:
+        return [COMPUTE] * self.num_branches
+
+    def describe(self) -> str:
+        return "dense"
+
+
+class IntervalPlan(_PerStepPlan):
+    """FORA-style: compute every branch at steps k % n == 0, reuse ``direction`` in between."""
+
+    def __init__(self, n: int, direction: str = "timestep"):
+        if int(n) < 1:
+            raise ValueError(f"interval n must be >= 1, got {n}")
+        self.n = int(n)
+        (self.direction,) = check_directions((direction,))
+        self.uses = frozenset({COMPUTE, DIRECTIONS[self.direction]})
+
+    def _row(self, k: int) -> list[int]:
+        code = COMPUTE if k % self.n == 0 else DIRECTIONS[self.direction]
+        return [code] * self.num_branches
+
+    def describe(self) -> str:
+        return f"every_n(n={self.n}, {self.direction})"
+
+
+class UniformPlan(_PerStepPlan):
+    """Single-direction static schedule at a target sparsity, compute spread evenly.
+
+    - ``timestep`` / ``rollout``: whole steps are computed at evenly spaced step indices (a
+      fractional FORA interval), the others reuse that direction for every branch.
+    - ``forward``: every step computes the same evenly spaced subset of blocks per branch kind (the
+      first block of each kind always computes), the others reuse the latest computed block of their
+      kind in the same forward.
+    """
+
+    def __init__(self, sparsity: float, direction: str = "timestep"):
+        self.sparsity = check_sparsity(sparsity)
+        (self.direction,) = check_directions((direction,))
+        self.uses = frozenset({COMPUTE, DIRECTIONS[self.direction]})
+
+    def _row(self, k: int) -> list[int]:
+        rate = 1.0 - self.sparsity
+        code = DIRECTIONS[self.direction]
+        if self.direction != "forward":
+            return [COMPUTE if _accumulator_hits(k, rate) else code] * self.num_branches
+        row, seen = [], {}
+        for kind in self.branch_kinds:
+            i = seen.get(kind, 0)
+            seen[kind] = i + 1
+            row.append(COMPUTE if _accumulator_hits(i, rate) else code)
+        return row
+
+    def describe(self) -> str:
+        return f"uniform(sparsity={self.sparsity}, {self.direction})"
+
+
+class TensorPlan(Plan):
+    """An explicit decision tensor: [K, nb] (all samples) or [B, K, nb], ints or 'CFTR' letters."""
+
+    def __init__(self, decisions: Union[torch.Tensor, Sequence]):
+        if isinstance(decisions, (list, tuple)) and decisions and _is_letters(decisions):
+            decisions = _letters_to_codes(decisions)
+        t = torch.as_tensor(decisions)
+        if t.dtype.is_floating_point or t.dtype == torch.bool:
+            raise TypeError(f"decision tensor must hold integer codes 0..3, got dtype {t.dtype}")
+        if t.dim() == 2:
+            t = t.unsqueeze(0)
+        if t.dim() != 3:
+            raise ValueError(
+                f"decision tensor must have shape [K, num_branches] or [B, K, num_branches], "
+                f"got {tuple(t.shape)}"
+            )
+        if t.numel() and (t.min() < 0 or t.max() > 3):
+            raise ValueError("decision codes must be in 0..3 (compute, forward, timestep, rollout)")
+        self.decisions = t.to(torch.int8).cpu().contiguous()
+        self.uses = frozenset(int(c) for c in torch.unique(self.decisions).tolist())
+
+    def bind(self, num_branches: int, branch_kinds: Sequence[str]) -> None:
+        super().bind(num_branches, branch_kinds)
+        if self.decisions.shape[-1] != num_branches:
+            raise ValueError(
+                f"plan has {self.decisions.shape[-1]} branches per step but the model has "
+                f"{num_branches} (blocks x branches); plan shape {tuple(self.decisions.shape)}"
+            )
+
+    def step(self, k: int, batch: int) -> torch.Tensor:
+        nsteps = self.decisions.shape[1]
+        if k >= nsteps:
+            raise IndexError(
+                f"the sampling loop reached step {k} but the plan only has {nsteps} steps"
+            )
+        rows = self.decisions[:, k]
+        if rows.shape[0] not in (1, batch):
+            raise ValueError(
+                f"plan holds decisions for {rows.shape[0]} samples but the batch has {batch}"
+            )
+        return rows
+
+    def describe(self) -> str:
+        return f"tensor{tuple(self.decisions.shape)}"
+
+
+def _is_letters(x) -> bool:
+    while isinstance(x, (list, tuple)) and x:
+        x = x[0]
+    return isinstance(x, str)
+
+
+def _letters_to_codes(x):
+    if isinstance(x, str):
+        try:
+            return [_LETTERS[c] for c in x]
+        except KeyError as e:
+            raise ValueError(f"unknown decision letter {e.args[0]!r}; use C, F, T or R") from None
+    return [_letters_to_codes(v) for v in x]
+
+
+def dense() -> DensePlan:
+    """Compute everything."""
+    return DensePlan()
+
+
+def every_n(n: int, direction: str = "timestep") -> IntervalPlan:
+    """FORA-style: full compute every ``n`` steps, reuse ``direction`` otherwise."""
+    return IntervalPlan(n, direction)
+
+
+def uniform(sparsity: float, direction: str = "timestep") -> UniformPlan:
+    """Single-direction schedule reusing a fraction ``sparsity`` of branches along ``direction``."""
+    return UniformPlan(sparsity, direction)
+
+
+def from_tensor(decisions: Union[torch.Tensor, Sequence]) -> TensorPlan:
+    """Explicit decisions [K, nb] or [B, K, nb] (codes 0..3 or strings of 'CFTR')."""
+    return TensorPlan(decisions)

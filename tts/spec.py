@@ -1,0 +1,149 @@
+"""Declarations of what a residual branch is, and how backbones are recognised.
+
+A *branch* is one residual term ``h = h + f(h, ...)`` of a transformer block (self-attention,
+cross-attention, MLP; for adaLN blocks the gated term ``gate * f(modulate(norm(h)))``), in the sense
+of PyTorch's ``nn.TransformerDecoderLayer._sa_block / _mha_block / _ff_block``.
+
+A :class:`BlockSpec` tells the engine how to run one block branch by branch: its ``forward`` is a
+re-statement of the block's own forward in which every residual term goes through ``run``::
+
+    def forward(block, run, x, c):
+        x = x + run(0, lambda h: block.attn(block.norm1(h)), x)
+        x = x + run(1, lambda h: block.mlp(block.norm2(h)), x)
+        return x
+
+``run(i, fn, *batched)`` returns the branch delta: ``fn(*batched)`` when the branch is computed, or a
+cached delta when it is reused. Arguments in ``batched`` are per-sample (row-selected when only some
+samples of the batch compute); everything shared across the batch (masks, modules) is captured by the
+closure. A :class:`Lazy` argument is evaluated at most once per block call, and only if some branch
+of the block computes (used for adaLN modulation).
+
+Backbone knowledge lives in ``tts.adapters``; the core only keeps the registries below.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional, Sequence
+
+import torch.nn as nn
+
+__all__ = [
+    "BranchSpec",
+    "BlockSpec",
+    "Lazy",
+    "Target",
+    "register_block_family",
+    "register_model_adapter",
+    "block_families",
+    "model_adapters",
+]
+
+
+@dataclass(frozen=True)
+class BranchSpec:
+    """One residual branch of a block.
+
+    name: label shown in summaries (``"self_attn"``).
+    kind: branch type; the *forward* direction reuses the latest computed branch of the same kind.
+    modules: attribute paths of the block's submodules that only this branch uses (FLOPs attribution).
+    """
+
+    name: str
+    kind: str
+    modules: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class BlockSpec:
+    """How to run one block branch by branch. See the module docstring."""
+
+    family: str
+    branches: tuple[BranchSpec, ...]
+    forward: Callable[..., Any]
+    batch_dim: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.branches:
+            raise ValueError(f"BlockSpec {self.family!r} declares no branches")
+
+
+class Lazy:
+    """A per-block value computed on first use (e.g. adaLN modulation chunks), at most once."""
+
+    __slots__ = ("_fn", "_value", "_done")
+
+    def __init__(self, fn: Callable[[], Any]):
+        self._fn = fn
+        self._done = False
+        self._value = None
+
+    def __call__(self) -> Any:
+        if not self._done:
+            self._value = self._fn()
+            self._done = True
+        return self._value
+
+
+def _first_tensor_batch(args: tuple, kwargs: dict) -> int:
+    import torch
+
+    for a in list(args) + list(kwargs.values()):
+        if isinstance(a, torch.Tensor) and a.dim() > 0:
+            return int(a.shape[0])
+    raise ValueError("cannot infer the batch size: the denoiser was called without tensor arguments")
+
+
+def _default_timestep(args: tuple, kwargs: dict) -> Any:
+    for key in ("timestep", "timesteps", "t"):
+        if key in kwargs:
+            return kwargs[key]
+    if len(args) > 1:
+        return args[1]
+    return None
+
+
+@dataclass
+class Target:
+    """What ``tts.accelerate`` acts on, as resolved by a model adapter.
+
+    denoiser: module whose forward is one denoising step (the step counter hooks it).
+    sites: (qualified name, block module, spec) for every block with prunable branches.
+    boundaries: (object, method name) pairs; each call of such a method starts a new sampling call
+        (``predict_action``). Without boundaries, a new call is detected from the timestep argument.
+    episode_resets: (object, method name) pairs that end an episode (``reset``): clears the rollout cache.
+    supports_rollout: False for models that are never used in rollouts (image generators).
+    """
+
+    denoiser: nn.Module
+    sites: list[tuple[str, nn.Module, BlockSpec]]
+    boundaries: list[tuple[Any, str]] = field(default_factory=list)
+    episode_resets: list[tuple[Any, str]] = field(default_factory=list)
+    supports_rollout: Optional[bool] = None
+    timestep_of: Callable[[tuple, dict], Any] = _default_timestep
+    batch_of: Callable[[tuple, dict], int] = _first_tensor_batch
+    description: str = ""
+
+
+BlockMatcher = Callable[[nn.Module], Optional[BlockSpec]]
+ModelAdapter = Callable[[Any], Optional[Target]]
+
+_BLOCK_FAMILIES: list[tuple[str, BlockMatcher]] = []
+_MODEL_ADAPTERS: list[tuple[str, ModelAdapter]] = []
+
+
+def register_block_family(name: str, match: BlockMatcher) -> None:
+    """Register a function that returns a :class:`BlockSpec` for blocks of one family, else None."""
+    _BLOCK_FAMILIES[:] = [(n, m) for n, m in _BLOCK_FAMILIES if n != name] + [(name, match)]
+
+
+def register_model_adapter(name: str, adapt: ModelAdapter) -> None:
+    """Register a function that resolves a whole model/policy into a :class:`Target`, else None."""
+    _MODEL_ADAPTERS[:] = [(n, m) for n, m in _MODEL_ADAPTERS if n != name] + [(name, adapt)]
+
+
+def block_families() -> Sequence[tuple[str, BlockMatcher]]:
+    return tuple(_BLOCK_FAMILIES)
+
+
+def model_adapters() -> Sequence[tuple[str, ModelAdapter]]:
+    return tuple(_MODEL_ADAPTERS)

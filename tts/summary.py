@@ -1,0 +1,151 @@
+"""What an accelerator did: decisions per (step, sample, branch), realised sparsity and MACs."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Hashable, Optional, Sequence
+
+import torch
+
+from .flops import OTHER
+from .plans import CODE_NAMES, COMPUTE
+
+__all__ = ["CallRecord", "Summary"]
+
+_LETTER = "CFTR"
+
+
+@dataclass
+class CallRecord:
+    """Decisions applied in one sampling call: ``steps[k]`` is int8 [1 or batch, num_branches]."""
+
+    batch: int
+    dense: bool = False
+    steps: list[torch.Tensor] = field(default_factory=list)
+    fallbacks: int = 0
+
+    def decisions(self) -> torch.Tensor:
+        """[steps, batch, num_branches] int8."""
+        if not self.steps:
+            return torch.zeros(0, self.batch, 0, dtype=torch.int8)
+        return torch.stack([s.expand(self.batch, -1) for s in self.steps])
+
+
+@dataclass
+class Summary:
+    branch_names: list[str]
+    calls: list[CallRecord]
+    macs_per_row: Optional[dict[Hashable, float]]
+    num_sites: int
+    site_of_branch: list[int]
+    plan: str
+    directions: Sequence[str]
+
+    # ---------------------------------------------------------------- numbers
+    @staticmethod
+    def sparsity_of(call: CallRecord) -> float:
+        d = call.decisions()
+        return float((d != COMPUTE).float().mean()) if d.numel() else 0.0
+
+    def sparsity(self, calls: Optional[Sequence[CallRecord]] = None) -> float:
+        """Fraction of (step, sample, branch) decisions that reused, over ``calls`` (default all)."""
+        calls = self.calls if calls is None else calls
+        total = sum(c.decisions().numel() for c in calls)
+        reused = sum(int((c.decisions() != COMPUTE).sum()) for c in calls)
+        return reused / total if total else 0.0
+
+    def counts(self, calls: Optional[Sequence[CallRecord]] = None) -> dict[str, int]:
+        calls = self.calls if calls is None else calls
+        out = {name: 0 for name in CODE_NAMES}
+        for c in calls:
+            d = c.decisions()
+            for code, name in enumerate(CODE_NAMES):
+                out[name] += int((d == code).sum())
+        return out
+
+    def macs(self, call: CallRecord) -> tuple[float, float]:
+        """(dense, realised) MACs of one call, from the profiled per-row MACs."""
+        if self.macs_per_row is None:
+            return float("nan"), float("nan")
+        m = self.macs_per_row
+        branch = torch.tensor([m.get(("branch", b), 0.0) for b in range(len(self.branch_names))], dtype=torch.float64)
+        shared = torch.tensor([m.get(("shared", s), 0.0) for s in range(self.num_sites)], dtype=torch.float64)
+        other = m.get(OTHER, 0.0)
+        d = call.decisions()  # [K, B, nb]
+        K, B = d.shape[0], d.shape[1]
+        dense = K * B * (other + float(branch.sum()) + float(shared.sum()))
+        computed = (d == COMPUTE).to(torch.float64)  # [K, B, nb]
+        realised = K * B * other + float((computed.sum(1) * branch).sum())
+        # a block's shared part runs (for the whole batch) when any of its branches computes
+        site = torch.tensor(self.site_of_branch)
+        site_active = torch.zeros(K, self.num_sites, dtype=torch.float64)
+        site_active.index_add_(1, site, computed.amax(1))
+        realised += float(((site_active > 0).to(torch.float64) * shared).sum()) * B
+        return dense, realised
+
+    def to_dict(self) -> dict:
+        last = self.calls[-1] if self.calls else None
+        out = {
+            "plan": self.plan,
+            "directions": list(self.directions),
+            "num_branches": len(self.branch_names),
+            "calls": len(self.calls),
+            "sparsity_all_calls": self.sparsity(),
+            "decision_counts": self.counts(),
+        }
+        if last is not None:
+            dense, realised = self.macs(last)
+            out.update(
+                last_call={
+                    "batch": last.batch,
+                    "steps": len(last.steps),
+                    "dense_first_call": last.dense,
+                    "sparsity": self.sparsity_of(last),
+                    "rollout_fallbacks": last.fallbacks,
+                    "macs_dense": dense,
+                    "macs_realised": realised,
+                }
+            )
+        return out
+
+    # ---------------------------------------------------------------- text
+    def grid(self, call: Optional[CallRecord] = None, sample: int = 0) -> str:
+        """One line per step, one letter per branch: C compute, F/T/R reuse direction."""
+        call = call or (self.calls[-1] if self.calls else None)
+        if call is None:
+            return "(no calls recorded)"
+        d = call.decisions()[:, sample]
+        lines = [f"{k:4d} " + "".join(_LETTER[c] for c in row.tolist()) for k, row in enumerate(d)]
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        if not self.calls:
+            return f"tts: plan={self.plan} directions={tuple(self.directions)}; no sampling call recorded yet"
+        last = self.calls[-1]
+        dense, realised = self.macs(last)
+        counts = self.counts()
+        total = max(sum(counts.values()), 1)
+        lines = [
+            f"tts: plan={self.plan} directions={tuple(self.directions)}",
+            f"  branches: {len(self.branch_names)} ({len(self.branch_names) // max(self.num_sites, 1)} per block x {self.num_sites} blocks)",
+            f"  calls recorded: {len(self.calls)}; last call: batch {last.batch}, {len(last.steps)} steps"
+            + (", dense (first call of an episode)" if last.dense else ""),
+            f"  realised sparsity: last call {self.sparsity_of(last):.1%}, all calls {self.sparsity():.1%}",
+            "  decisions (all calls): "
+            + ", ".join(f"{k} {v / total:.1%}" for k, v in counts.items()),
+        ]
+        if last.fallbacks:
+            lines.append(f"  rollout cache missing at {last.fallbacks} decisions: computed instead")
+        if dense == dense:  # not NaN
+            lines.append(
+                f"  MACs last call: dense {dense / 1e9:.3f} G, realised {realised / 1e9:.3f} G "
+                f"({dense / max(realised, 1):.2f}x fewer)"
+            )
+        d = last.decisions()
+        frac = (d == COMPUTE).float().mean((0, 1))
+        width = max(len(n) for n in self.branch_names)
+        lines.append("  compute fraction per branch (last call):")
+        for name, f in zip(self.branch_names, frac.tolist()):
+            lines.append(f"    {name:<{width}}  {f:6.1%}")
+        lines.append("  decisions per step, sample 0 (C compute, F forward, T timestep, R rollout):")
+        lines.append(self.grid(last))
+        return "\n".join(lines)
