@@ -99,14 +99,14 @@ class TransformerForDiffusion(nn.Module):
         if not self.encoder_only:
             self.cond_pos_emb = nn.Parameter(torch.zeros(1, T_cond, c.n_emb))
             if c.n_cond_layers > 0:
-                self.encoder = nn.TransformerEncoder(enc_layer(), c.n_cond_layers)
+                self.encoder = nn.TransformerEncoder(enc_layer(), c.n_cond_layers, enable_nested_tensor=False)
             else:
                 self.encoder = nn.Sequential(nn.Linear(c.n_emb, 4 * c.n_emb), nn.Mish(), nn.Linear(4 * c.n_emb, c.n_emb))
             layer = nn.TransformerDecoderLayer(c.n_emb, c.n_head, 4 * c.n_emb, c.p_drop_attn,
                                                activation="gelu", batch_first=True, norm_first=True)
             self.decoder = nn.TransformerDecoder(layer, c.n_layer)
         else:
-            self.encoder = nn.TransformerEncoder(enc_layer(), c.n_layer)
+            self.encoder = nn.TransformerEncoder(enc_layer(), c.n_layer, enable_nested_tensor=False)
 
         if c.causal_attn:
             self.register_buffer("mask", _additive(torch.tril(torch.ones(T, T, dtype=torch.bool))))

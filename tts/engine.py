@@ -378,7 +378,7 @@ class Accelerator:
         if key == self._profile_key:
             return
         self._profile_key = key
-        profiler = MacProfiler(self.target.denoiser, self._owner_of)
+        profiler = MacProfiler(self.target.denoiser, self._owner_of, [s.module for s in self.sites])
         with profiler, torch.no_grad():
             orig(*args, **kwargs)  # block wrappers pass through: _in_step is False
         self.macs_per_row = {owner: v / batch for owner, v in profiler.totals.items()}

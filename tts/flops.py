@@ -14,7 +14,7 @@ tests check the two agree on every supported family.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Hashable, Optional
+from typing import Any, Callable, Hashable, Optional, Sequence
 
 import torch
 import torch.nn as nn
@@ -73,22 +73,44 @@ register_mac_rule(nn.MultiheadAttention, _mha)
 class MacProfiler:
     """Context manager: MACs of every rule-bearing module call inside ``root``, summed per owner.
 
-    ``owner_of`` maps a module to its owner key; modules not in it count under :data:`OTHER`.
+    A call made while block ``sites[i]`` is running is charged to ``owner_of[module]`` (a branch
+    of that block) or to the block's shared part; any other call (even of a module that belongs to
+    a block, e.g. DiT reusing ``blocks[0].norm1.emb`` for its final layer) counts under
+    :data:`OTHER`.
     """
 
-    def __init__(self, root: nn.Module, owner_of: dict[nn.Module, Hashable]):
+    def __init__(self, root: nn.Module, owner_of: dict[nn.Module, Hashable], sites: Sequence[nn.Module] = ()):
         self.root = root
         self.owner_of = owner_of
+        self.sites = list(sites)
         self.totals: dict[Hashable, int] = {}
         self._handles: list = []
+        self._active: list[int] = []
+
+    def _owner(self, module: nn.Module) -> Hashable:
+        if not self._active:
+            return OTHER
+        return self.owner_of.get(module, ("shared", self._active[-1]))
 
     def __enter__(self) -> "MacProfiler":
+        def enter(si: int) -> Callable:
+            def pre_hook(*_):
+                self._active.append(si)
+
+            return pre_hook
+
+        def leave(*_):
+            self._active.pop()
+
+        for si, site in enumerate(self.sites):
+            self._handles.append(site.register_forward_pre_hook(enter(si)))
+            self._handles.append(site.register_forward_hook(leave))
         for module in self.root.modules():
             if _rule_for(module) is None:
                 continue
-            owner = self.owner_of.get(module, OTHER)
 
-            def hook(mod, args, kwargs, out, owner=owner):
+            def hook(mod, args, kwargs, out):
+                owner = self._owner(mod)
                 self.totals[owner] = self.totals.get(owner, 0) + module_macs(mod, args, kwargs, out)
 
             self._handles.append(module.register_forward_hook(hook, with_kwargs=True))
@@ -98,6 +120,7 @@ class MacProfiler:
         for h in self._handles:
             h.remove()
         self._handles.clear()
+        self._active.clear()
 
     @property
     def total(self) -> int:

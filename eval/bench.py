@@ -1,0 +1,206 @@
+"""Engine benchmark: wall-clock and MACs of static sparse plans against dense, in one process.
+
+    python eval/bench.py [--quick] [--out results/bench_engine.json]
+
+- Diffusion-Policy-sized transformer (8 decoder layers, width 256, 4 heads, horizon 10, DDPM-100):
+  static 93%-sparse plan (7 full steps, timestep reuse) at batch 1 and batch 28, against DP's stock
+  loop (encoder + ``DDPMScheduler.step`` every step) and against the same fast loop run dense
+  (encoder once per call, precomputed DDPM coefficients).
+- DiT-S/2-sized models (diffusers ``DiTTransformer2DModel`` and the official timm layout), DDIM-50,
+  classifier-free guidance batched as [cond; uncond]: static 80%-sparse plan.
+
+Timings interleave the methods rep by rep (same process, same inputs, same noise). Weights are
+random: this measures speed and MACs, not quality (output error is reported for orientation only).
+MACs come from PyTorch's FlopCounterMode on one real call of each method (FLOPs / 2).
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import REPO, provenance, write_atomic, write_json  # noqa: E402
+
+import tts  # noqa: E402
+from tts.flops import flop_counter_macs  # noqa: E402
+
+
+def interleaved(fns: dict[str, Callable[[], torch.Tensor]], reps: int) -> dict[str, list[float]]:
+    """Median-friendly timings: every method once per rep, in turn, after one warm-up call each."""
+    times = {k: [] for k in fns}
+    for fn in fns.values():  # warm-up (and the one-off MAC profiling step of accelerated models)
+        fn()
+    for _ in range(reps):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[k].append(time.perf_counter() - t0)
+    return times
+
+
+def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).norm() / b.norm().clamp_min(1e-12))
+
+
+def bench_dp(batch: int, reps: int, sparsity: float) -> dict:
+    from diffusers import DDPMScheduler
+
+    from tts.adapters.diffusion_policy import DPTransformerConfig, TransformerForDiffusion, sample_actions
+
+    torch.manual_seed(0)
+    cfg = DPTransformerConfig(input_dim=7, output_dim=7, horizon=10, n_obs_steps=2, cond_dim=19, n_layer=8,
+                              n_head=4, n_emb=256, p_drop_attn=0.3, p_drop_emb=0.0, causal_attn=True, obs_as_cond=True)
+    model = TransformerForDiffusion(cfg).eval()
+    sched = DDPMScheduler(num_train_timesteps=100, beta_schedule="squaredcos_cap_v2", clip_sample=True,
+                          prediction_type="epsilon")
+    sched.set_timesteps(100)
+    cond = torch.randn(batch, 2, 19, generator=torch.Generator().manual_seed(1))
+    plan = tts.plans.uniform(sparsity, "timestep")
+    dense_model = copy.deepcopy(model)  # same weights, never accelerated
+    acc = tts.accelerate(model, ("timestep",), plan=plan)
+
+    def run(m, fast=True) -> torch.Tensor:
+        return sample_actions(m, cond, sched, generator=torch.Generator().manual_seed(2), fast=fast)
+
+    fns = {"dense_stock": lambda: run(dense_model, fast=False), "dense_fast": lambda: run(dense_model),
+           "tts": lambda: run(model)}
+    times = interleaved(fns, reps)
+    dense_out, sparse_out = run(dense_model), run(model)
+    macs = {k: flop_counter_macs(fn) for k, fn in fns.items()}
+    summary = acc.summary()
+    acc.remove()
+    med = {k: statistics.median(v) for k, v in times.items()}
+    return {
+        "model": "DP-T: 8 decoder layers, width 256, 4 heads, horizon 10, obs 2x19, action 7, DDPM-100",
+        "batch": batch,
+        "plan": plan.describe(),
+        "realised_sparsity": summary.sparsity_of(summary.calls[-1]),
+        "latency_s_median": med,
+        "latency_s_all": times,
+        "speedup_vs_dense_fast_loop": med["dense_fast"] / med["tts"],
+        "speedup_vs_dense_stock_loop": med["dense_stock"] / med["tts"],
+        "macs": macs,
+        "macs_ratio_dense_fast_over_tts": macs["dense_fast"] / macs["tts"],
+        "macs_analytic_decoder_only": dict(zip(("dense", "realised"), summary.macs(summary.calls[-1]))),
+        "output_rel_error_vs_dense": rel_err(sparse_out, dense_out),
+    }
+
+
+def bench_dit(kind: str, reps: int, sparsity: float, steps: int = 50) -> dict:
+    from diffusers import DDIMScheduler
+
+    torch.manual_seed(0)
+    if kind == "diffusers":
+        from diffusers import DiTTransformer2DModel
+
+        model = DiTTransformer2DModel(num_attention_heads=6, attention_head_dim=64, in_channels=4, out_channels=8,
+                                      num_layers=12, sample_size=32, patch_size=2, num_embeds_ada_norm=1000)
+    else:
+        from tts.adapters.dit import DIT_CONFIGS, DiT
+
+        model = DiT(DIT_CONFIGS["DiT-S/2"])
+    with torch.no_grad():  # random but non-degenerate weights (DiT zero-inits its adaLN gates)
+        for p in model.parameters():
+            if p.requires_grad:
+                p.normal_(0, 0.02)
+    model.eval()
+    sched = DDIMScheduler(num_train_timesteps=1000)
+    sched.set_timesteps(steps)
+    latents0 = torch.randn(1, 4, 32, 32, generator=torch.Generator().manual_seed(1))
+    labels = torch.tensor([207, 1000])  # [cond; uncond (null class)]
+    plan = tts.plans.uniform(sparsity, "timestep")
+
+    @torch.no_grad()
+    def sample(m) -> torch.Tensor:
+        x = latents0
+        for t in sched.timesteps:
+            inp = torch.cat([x, x])
+            tt = t.expand(2)
+            out = m(inp, tt, labels)
+            out = out.sample if hasattr(out, "sample") else out
+            eps = out[:, :4]
+            cond, uncond = eps.chunk(2)
+            x = sched.step(uncond + 1.5 * (cond - uncond), t, x).prev_sample
+        return x
+
+    dense_model = copy.deepcopy(model)
+    acc = tts.accelerate(model, ("forward", "timestep"), plan=plan)
+    fns = {"dense": lambda: sample(dense_model), "tts": lambda: sample(model)}
+    times = interleaved(fns, reps)
+    dense_out, sparse_out = sample(dense_model), sample(model)
+    macs = {k: flop_counter_macs(fn) for k, fn in fns.items()}
+    summary = acc.summary()
+    acc.remove()
+    med = {k: statistics.median(v) for k, v in times.items()}
+    return {
+        "model": f"DiT-S/2 ({kind}): 12 blocks, width 384, 6 heads, 32x32x4 latents, DDIM-{steps}, CFG batch 2",
+        "batch": 2,
+        "plan": plan.describe(),
+        "realised_sparsity": summary.sparsity_of(summary.calls[-1]),
+        "latency_s_median": med,
+        "latency_s_all": times,
+        "speedup": med["dense"] / med["tts"],
+        "macs": macs,
+        "macs_ratio": macs["dense"] / macs["tts"],
+        "output_rel_error_vs_dense": rel_err(sparse_out, dense_out),
+    }
+
+
+def to_markdown(res: dict) -> str:
+    lines = ["# Engine benchmark", "", f"Command: `{res['provenance']['command']}`  ",
+             f"Git SHA: `{res['provenance']['git_sha']}`  ", f"Date: {res['provenance']['date']}  ",
+             f"Machine: {res['provenance']['machine']['cpu']}, {res['provenance']['machine']['torch_threads']} threads, "
+             f"torch {res['provenance']['machine']['torch']}", "",
+             "Random weights: speed and MACs only. MACs from FlopCounterMode on one real call.", "",
+             "| model | batch | plan | sparsity | dense stock (s) | dense fast (s) | tts (s) | speed-up vs fast | vs stock | MACs ratio |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in res["diffusion_policy"]:
+        m = r["latency_s_median"]
+        lines.append(f"| DP-T | {r['batch']} | {r['plan']} | {r['realised_sparsity']:.3f} | {m['dense_stock']:.3f} | "
+                     f"{m['dense_fast']:.3f} | {m['tts']:.4f} | **{r['speedup_vs_dense_fast_loop']:.2f}x** | "
+                     f"{r['speedup_vs_dense_stock_loop']:.2f}x | {r['macs_ratio_dense_fast_over_tts']:.2f}x |")
+    for r in res["dit"]:
+        m = r["latency_s_median"]
+        lines.append(f"| {r['model'].split(':')[0]} | {r['batch']} | {r['plan']} | {r['realised_sparsity']:.3f} | "
+                     f"| {m['dense']:.3f} | {m['tts']:.3f} | **{r['speedup']:.2f}x** | | {r['macs_ratio']:.2f}x |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="fewer reps, batch 1 DP and diffusers DiT only")
+    ap.add_argument("--out", type=Path, default=REPO / "results" / "bench_engine.json")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    reps = 2 if args.quick else 5
+    res = {"provenance": provenance(seeds={"torch": 0, "cond": 1, "noise": 2}), "diffusion_policy": [], "dit": []}
+    for batch in ([1] if args.quick else [1, 28]):
+        print(f"[bench] DP-T batch {batch} ...", flush=True)
+        r = bench_dp(batch, reps if batch == 1 else max(2, reps - 2), 0.93)
+        res["diffusion_policy"].append(r)
+        print(f"  tts {r['latency_s_median']['tts']:.4f}s vs dense fast {r['latency_s_median']['dense_fast']:.3f}s "
+              f"({r['speedup_vs_dense_fast_loop']:.2f}x), vs stock {r['speedup_vs_dense_stock_loop']:.2f}x, "
+              f"MACs {r['macs_ratio_dense_fast_over_tts']:.2f}x fewer", flush=True)
+    for kind in (["diffusers"] if args.quick else ["diffusers", "official"]):
+        print(f"[bench] DiT-S/2 ({kind}) ...", flush=True)
+        r = bench_dit(kind, 1 if args.quick else 2, 0.8)
+        res["dit"].append(r)
+        print(f"  tts {r['latency_s_median']['tts']:.3f}s vs dense {r['latency_s_median']['dense']:.3f}s "
+              f"({r['speedup']:.2f}x), MACs {r['macs_ratio']:.2f}x fewer", flush=True)
+    write_json(args.out, res)
+    write_atomic(args.out.with_suffix(".md"), to_markdown(res))
+    print(f"[bench] wrote {args.out} and {args.out.with_suffix('.md')}")
+    return res
+
+
+if __name__ == "__main__":
+    main()

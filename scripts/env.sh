@@ -1,0 +1,17 @@
+# Sourced by scripts/*.sh: create .venv on first use (torch pinned as in docs/environment), then activate it.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+PY="${PYTHON:-python3}"
+if [ ! -x .venv/bin/python ] || [ ! -f .venv/.tts-installed ]; then
+  echo "[setup] creating .venv (torch 2.14.1 + project extras; a few minutes on first run)" >&2
+  "$PY" -m venv .venv
+  .venv/bin/python -m pip install -q --upgrade pip 2>&1 | grep -v "^WARNING: Location" >&2 || true
+  .venv/bin/python -m pip install -q "torch==2.14.1" "torchvision==0.29.1" 2>&1 | grep -v "^WARNING: Location" >&2 || true
+  .venv/bin/python -m pip install -q -e ".[all,dev]" 2>&1 | grep -v "^WARNING: Location" >&2 || true
+  .venv/bin/python -c "import tts, tts.adapters, diffusers, timm, torch" || { echo "[setup] install failed" >&2; exit 1; }
+  touch .venv/.tts-installed
+fi
+# shellcheck disable=SC1091
+source .venv/bin/activate
+export HF_HUB_OFFLINE=1
