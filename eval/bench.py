@@ -3,7 +3,8 @@
     python eval/bench.py [--quick] [--out results/bench_engine.json]
 
 - Diffusion-Policy-sized transformer (8 decoder layers, width 256, 4 heads, horizon 10, DDPM-100):
-  static 93%-sparse plan (7 full steps, timestep reuse) at batch 1 and batch 28, against DP's stock
+  static 93%-sparse plan (7 full steps, timestep reuse) at batch 1 and batch 28, and at batch 28 a
+  plan where every sample has its own random 93% decisions (gather/scatter path), against DP's stock
   loop (encoder + ``DDPMScheduler.step`` every step) and against the same fast loop run dense
   (encoder once per call, precomputed DDPM coefficients).
 - DiT-S/2-sized models (diffusers ``DiTTransformer2DModel`` and the official timm layout), DDIM-50,
@@ -49,7 +50,19 @@ def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).norm() / b.norm().clamp_min(1e-12))
 
 
-def bench_dp(batch: int, reps: int, sparsity: float) -> dict:
+def per_sample_plan(batch: int, steps: int, nb: int, sparsity: float, seed: int = 0) -> "tts.plans.TensorPlan":
+    """Each sample its own random decisions (timestep reuse), exactly ``sparsity`` per sample."""
+    g = torch.Generator().manual_seed(seed)
+    n_compute = round((1 - sparsity) * steps * nb) - nb  # step 0 is always computed
+    dec = torch.full((batch, steps, nb), tts.plans.TIMESTEP, dtype=torch.int8)
+    dec[:, 0] = tts.plans.COMPUTE
+    for b in range(batch):
+        idx = torch.randperm((steps - 1) * nb, generator=g)[:n_compute]
+        dec[b, 1:].view(-1)[idx] = tts.plans.COMPUTE
+    return tts.plans.from_tensor(dec)
+
+
+def bench_dp(batch: int, reps: int, sparsity: float, per_sample: bool = False) -> dict:
     from diffusers import DDPMScheduler
 
     from tts.adapters.diffusion_policy import DPTransformerConfig, TransformerForDiffusion, sample_actions
@@ -62,7 +75,7 @@ def bench_dp(batch: int, reps: int, sparsity: float) -> dict:
                           prediction_type="epsilon")
     sched.set_timesteps(100)
     cond = torch.randn(batch, 2, 19, generator=torch.Generator().manual_seed(1))
-    plan = tts.plans.uniform(sparsity, "timestep")
+    plan = per_sample_plan(batch, 100, 24, sparsity) if per_sample else tts.plans.uniform(sparsity, "timestep")
     dense_model = copy.deepcopy(model)  # same weights, never accelerated
     acc = tts.accelerate(model, ("timestep",), plan=plan)
 
@@ -80,7 +93,7 @@ def bench_dp(batch: int, reps: int, sparsity: float) -> dict:
     return {
         "model": "DP-T: 8 decoder layers, width 256, 4 heads, horizon 10, obs 2x19, action 7, DDPM-100",
         "batch": batch,
-        "plan": plan.describe(),
+        "plan": ("per-sample random " if per_sample else "") + plan.describe(),
         "realised_sparsity": summary.sparsity_of(summary.calls[-1]),
         "latency_s_median": med,
         "latency_s_all": times,
@@ -183,9 +196,9 @@ def main(argv=None) -> dict:
         torch.set_num_threads(args.threads)
     reps = 2 if args.quick else 5
     res = {"provenance": provenance(seeds={"torch": 0, "cond": 1, "noise": 2}), "diffusion_policy": [], "dit": []}
-    for batch in ([1] if args.quick else [1, 28]):
-        print(f"[bench] DP-T batch {batch} ...", flush=True)
-        r = bench_dp(batch, reps if batch == 1 else max(2, reps - 2), 0.93)
+    for batch, per_sample in ([(1, False)] if args.quick else [(1, False), (28, False), (28, True)]):
+        print(f"[bench] DP-T batch {batch}{' per-sample plan' if per_sample else ''} ...", flush=True)
+        r = bench_dp(batch, reps if batch == 1 else max(2, reps - 2), 0.93, per_sample)
         res["diffusion_policy"].append(r)
         print(f"  tts {r['latency_s_median']['tts']:.4f}s vs dense fast {r['latency_s_median']['dense_fast']:.3f}s "
               f"({r['speedup_vs_dense_fast_loop']:.2f}x), vs stock {r['speedup_vs_dense_stock_loop']:.2f}x, "

@@ -347,23 +347,26 @@ class Accelerator:
         self._passthrough = self.fast_dense and all_compute and not self._store
 
     def _fast_form(self, rows: torch.Tensor, batch: int) -> tuple[list[int], dict, bool]:
+        """Per branch: one code if all samples agree, else -1 and (compute rows, [(code, rows)])."""
         if rows.shape[0] not in (1, batch):
             raise ValueError(f"plan gave decisions for {rows.shape[0]} samples, batch is {batch}")
-        uniform = (rows == rows[:1]).all(0)
-        row = [int(c) if u else -1 for c, u in zip(rows[0].tolist(), uniform.tolist())]
-        groups = {}
-        for b, code in enumerate(row):
-            if code >= 0:
+        row: list[int] = []
+        groups: dict[int, tuple] = {}
+        for b, col in enumerate(zip(*rows.tolist())):
+            first = col[0]
+            if all(c == first for c in col):
+                row.append(first)
                 continue
-            col = rows[:, b].long()
-            cidx = torch.nonzero(col == COMPUTE).flatten()
-            reuse = [
-                (c, torch.nonzero(col == c).flatten())
-                for c in torch.unique(col).tolist()
-                if c != COMPUTE
-            ]
-            groups[b] = (cidx if cidx.numel() else None, reuse)
-        return row, groups, not bool(rows.any())
+            row.append(-1)
+            where: dict[int, list[int]] = {}
+            for i, c in enumerate(col):
+                where.setdefault(c, []).append(i)
+            cidx = where.pop(COMPUTE, None)
+            groups[b] = (
+                None if cidx is None else torch.tensor(cidx),
+                [(c, torch.tensor(ix)) for c, ix in where.items()],
+            )
+        return row, groups, not any(row) and not groups
 
     def _maybe_profile(self, orig: Callable, args: tuple, kwargs: dict, batch: int) -> None:
         """Count MACs per branch once per input-shape signature, in a separate dense dry run.

@@ -212,6 +212,7 @@ class TensorPlan(Plan):
                 f"plan has {self.decisions.shape[-1]} branches per step but the model has "
                 f"{num_branches} (blocks x branches); plan shape {tuple(self.decisions.shape)}"
             )
+        self._rows: dict[int, torch.Tensor] = {}
 
     def step(self, k: int, batch: int) -> torch.Tensor:
         nsteps = self.decisions.shape[1]
@@ -219,7 +220,9 @@ class TensorPlan(Plan):
             raise IndexError(
                 f"the sampling loop reached step {k} but the plan only has {nsteps} steps"
             )
-        rows = self.decisions[:, k]
+        rows = self._rows.get(k)
+        if rows is None:  # one tensor per step, so the engine's per-step preprocessing is reused
+            rows = self._rows[k] = self.decisions[:, k]
         if rows.shape[0] not in (1, batch):
             raise ValueError(
                 f"plan holds decisions for {rows.shape[0]} samples but the batch has {batch}"
