@@ -1,0 +1,240 @@
+"""Diffusion Policy (low-dim, transformer) around :class:`TransformerForDiffusion`: normaliser,
+observation history, action chunking, DDPM/DDIM sampling, checkpoint loading.
+
+- ``predict_action({key: [B, To, dim]})`` returns ``action`` [B, Ta, Da] (executed) and
+  ``action_pred`` [B, H, Da]; ``reset()`` marks an episode boundary (tts clears its rollout cache).
+- Checkpoints: ours are ``<name>.safetensors`` (EMA weights + normaliser) next to ``<name>.json``
+  (config); official Diffusion Policy ``.ckpt`` files (a torch pickle with ``cfg`` and
+  ``state_dicts``) load without the diffusion_policy package. Pickle runs code on load: only pass
+  files you trust (``trust_pickle=True`` is required when the file holds more than tensors).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from tts.io import atomic_path
+from tts.spec import Target, register_model_adapter
+
+from .diffusion_policy import DPTransformerConfig, TransformerForDiffusion, _adapt as _adapt_model
+from .schedulers import FastDDPM
+
+__all__ = ["Normalizer", "PolicyConfig", "DiffusionTransformerLowdimPolicy", "load_policy", "save_policy"]
+
+
+class Normalizer(nn.Module):
+    """Per-dimension affine map to [-1, 1] (Diffusion Policy's ``limits`` mode): y = x * scale + offset."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.register_buffer("scale", torch.ones(dim))
+        self.register_buffer("offset", torch.zeros(dim))
+
+    @torch.no_grad()
+    def fit(self, data: torch.Tensor, range_eps: float = 1e-4) -> "Normalizer":
+        x = data.reshape(-1, data.shape[-1]).double()
+        lo, hi = x.min(0).values, x.max(0).values
+        rng = hi - lo
+        flat = rng < range_eps  # constant dims: centre them, do not blow them up
+        rng[flat] = 2.0
+        scale = 2.0 / rng
+        offset = -1.0 - scale * lo
+        offset[flat] = -lo[flat]
+        self.scale.copy_(scale.float())
+        self.offset.copy_(offset.float())
+        return self
+
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.scale + self.offset
+
+    def unnormalize(self, y: torch.Tensor) -> torch.Tensor:
+        return (y - self.offset) / self.scale
+
+
+@dataclass
+class PolicyConfig:
+    model: dict
+    obs_keys: Sequence[str]
+    obs_dims: Sequence[int]
+    action_dim: int
+    horizon: int = 10
+    n_obs_steps: int = 2
+    n_action_steps: int = 8
+    num_train_timesteps: int = 100
+    num_inference_steps: int = 100
+    scheduler: str = "ddpm"  # or "ddim"
+    extra: dict = field(default_factory=dict)
+
+
+def _make_scheduler(cfg: PolicyConfig):
+    from diffusers import DDIMScheduler, DDPMScheduler
+
+    kw = dict(num_train_timesteps=cfg.num_train_timesteps, beta_schedule="squaredcos_cap_v2",
+              clip_sample=True, prediction_type="epsilon")
+    if cfg.scheduler == "ddim":
+        s = DDIMScheduler(set_alpha_to_one=True, steps_offset=0, **kw)
+    elif cfg.scheduler == "ddpm":
+        s = DDPMScheduler(variance_type="fixed_small", **kw)
+    else:
+        raise ValueError(f"scheduler must be 'ddpm' or 'ddim', got {cfg.scheduler!r}")
+    s.set_timesteps(cfg.num_inference_steps)
+    return s
+
+
+class DiffusionTransformerLowdimPolicy(nn.Module):
+    """DP-T with observations as condition tokens (``obs_as_cond``), as in Chi et al. 2023."""
+
+    def __init__(self, cfg: PolicyConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.model = TransformerForDiffusion(DPTransformerConfig(**cfg.model))
+        self.obs_normalizer = Normalizer(sum(cfg.obs_dims))
+        self.action_normalizer = Normalizer(cfg.action_dim)
+        self.scheduler = _make_scheduler(cfg)
+        self._fast = FastDDPM(self.scheduler) if cfg.scheduler == "ddpm" else None
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.pos_emb.device
+
+    def reset(self) -> None:
+        """Episode boundary (no state of its own; tts hooks it to clear the rollout cache)."""
+
+    def obs_vector(self, obs: dict[str, Any]) -> torch.Tensor:
+        """Concatenate the observation keys in config order: [B, To, obs_dim]."""
+        parts = []
+        for k in self.cfg.obs_keys:
+            if k not in obs:
+                raise KeyError(f"observation key {k!r} missing; policy expects {list(self.cfg.obs_keys)}")
+            parts.append(torch.as_tensor(np.asarray(obs[k]), dtype=torch.float32))
+        x = torch.cat(parts, dim=-1)
+        if x.shape[-1] != sum(self.cfg.obs_dims):
+            raise ValueError(f"observation dim {x.shape[-1]} != expected {sum(self.cfg.obs_dims)}")
+        return x.to(self.device)
+
+    @torch.no_grad()
+    def predict_action(self, obs: dict[str, Any], generator: Optional[torch.Generator] = None) -> dict[str, torch.Tensor]:
+        cfg = self.cfg
+        nobs = self.obs_normalizer.normalize(self.obs_vector(obs))
+        if nobs.dim() != 3 or nobs.shape[1] < cfg.n_obs_steps:
+            raise ValueError(f"observations must be [B, >= {cfg.n_obs_steps}, dim], got {tuple(nobs.shape)}")
+        cond = nobs[:, -cfg.n_obs_steps:]
+        B = cond.shape[0]
+        x = torch.randn(B, cfg.horizon, cfg.action_dim, generator=generator, device=self.device)
+        if self._fast is not None:
+            memory = self.model.condition_memory(self._fast.timesteps, cond)
+            for i, t in enumerate(self._fast.timesteps):
+                x = self._fast.step(i, self.model(x, t, cond, memory=memory[:, i]), x, generator)
+        else:
+            memory = self.model.condition_memory(self.scheduler.timesteps, cond)
+            for i, t in enumerate(self.scheduler.timesteps):
+                out = self.model(x, t, cond, memory=memory[:, i])
+                x = self.scheduler.step(out, t, x, generator=generator).prev_sample
+        action_pred = self.action_normalizer.unnormalize(x)
+        start = cfg.n_obs_steps - 1
+        return {"action": action_pred[:, start:start + cfg.n_action_steps], "action_pred": action_pred}
+
+    def compute_loss(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """DDPM epsilon loss on normalised data; obs [B, To, obs_dim], action [B, H, Da]."""
+        cond = self.obs_normalizer.normalize(obs)[:, : self.cfg.n_obs_steps]
+        a = self.action_normalizer.normalize(action)
+        noise = torch.randn_like(a)
+        t = torch.randint(0, self.cfg.num_train_timesteps, (a.shape[0],), device=a.device)
+        noisy = self.scheduler.add_noise(a, noise, t)
+        return nn.functional.mse_loss(self.model(noisy, t, cond), noise)
+
+
+def save_policy(policy: DiffusionTransformerLowdimPolicy, path: Path, metadata: Optional[dict] = None,
+                dtype: torch.dtype = torch.float16) -> None:
+    """``path.safetensors`` (weights, stored as ``dtype``; normaliser in fp32) + ``path.json``."""
+    from safetensors.torch import save_file
+
+    path = Path(path).with_suffix("")
+    state = {k: (v.to(dtype) if k.startswith("model.") and v.is_floating_point() else v).contiguous()
+             for k, v in policy.state_dict().items()}
+    with atomic_path(path.with_suffix(".safetensors")) as tmp:
+        save_file(state, str(tmp))
+    meta = {"format": "tts-dp-lowdim-v1", "config": asdict(policy.cfg), "metadata": metadata or {}}
+    with atomic_path(path.with_suffix(".json")) as tmp:
+        tmp.write_text(json.dumps(meta, indent=2))
+
+
+def _from_official(payload: dict) -> DiffusionTransformerLowdimPolicy:
+    cfg = payload["cfg"]
+    cfg = {k: cfg[k] for k in cfg} if not isinstance(cfg, dict) else cfg
+    pol, task = cfg["policy"], cfg.get("task", {})
+    m = dict(pol["model"])
+    m.pop("_target_", None)
+    model_cfg = {k: m[k] for k in DPTransformerConfig.__dataclass_fields__ if k in m}
+    sched = dict(pol.get("noise_scheduler", {}))
+    states = payload["state_dicts"]
+    sd = states.get("ema_model") or states["model"]
+    obs_dim, action_dim = int(cfg.get("obs_dim", task.get("obs_dim"))), int(cfg.get("action_dim", task.get("action_dim")))
+    pcfg = PolicyConfig(model=model_cfg, obs_keys=("obs",), obs_dims=(obs_dim,), action_dim=action_dim,
+                        horizon=int(cfg["horizon"]), n_obs_steps=int(cfg["n_obs_steps"]),
+                        n_action_steps=int(cfg["n_action_steps"]),
+                        num_train_timesteps=int(sched.get("num_train_timesteps", 100)),
+                        num_inference_steps=int(pol.get("num_inference_steps") or sched.get("num_train_timesteps", 100)))
+    policy = DiffusionTransformerLowdimPolicy(pcfg)
+    policy.model.load_state_dict({k[len("model."):]: v for k, v in sd.items() if k.startswith("model.")})
+    for which, norm in (("obs", policy.obs_normalizer), ("action", policy.action_normalizer)):
+        norm.scale.copy_(sd[f"normalizer.params_dict.{which}.scale"])
+        norm.offset.copy_(sd[f"normalizer.params_dict.{which}.offset"])
+    return policy
+
+
+def load_policy(path: Path, trust_pickle: bool = False) -> DiffusionTransformerLowdimPolicy:
+    """Load ours (``.safetensors`` + ``.json``) or an official Diffusion Policy ``.ckpt``."""
+    path = Path(path)
+    if path.suffix == ".ckpt":
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:  # the official format pickles an OmegaConf config
+            if not trust_pickle:
+                raise ValueError(
+                    f"{path} holds Python objects besides tensors (its config); loading it runs "
+                    "pickled code. Pass trust_pickle=True only for files you trust."
+                ) from e
+            payload = torch.load(path, map_location="cpu", weights_only=False)
+        if "state_dicts" not in payload or "cfg" not in payload:
+            raise ValueError(f"{path} is not a Diffusion Policy checkpoint (needs 'cfg' and 'state_dicts')")
+        return _from_official(payload).eval()
+    from safetensors.torch import load_file
+
+    base = path.with_suffix("")
+    meta_path, weights = base.with_suffix(".json"), base.with_suffix(".safetensors")
+    for p in (meta_path, weights):
+        if not p.exists():
+            raise FileNotFoundError(f"{p} not found (a tts policy is a .safetensors + .json pair)")
+    meta = json.loads(meta_path.read_text())
+    if meta.get("format") != "tts-dp-lowdim-v1":
+        raise ValueError(f"{meta_path}: unknown format {meta.get('format')!r}")
+    policy = DiffusionTransformerLowdimPolicy(PolicyConfig(**meta["config"]))
+    state = {k: v.float() if v.is_floating_point() else v for k, v in load_file(str(weights)).items()}
+    missing, unexpected = policy.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise ValueError(f"{weights} does not match its config: missing {missing[:5]}, unexpected {unexpected[:5]}")
+    return policy.eval()
+
+
+def _adapt(policy: Any) -> Optional[Target]:
+    """A DP policy: its transformer is the denoiser; ``predict_action`` starts a sampling call and
+    ``reset`` ends an episode."""
+    if not (hasattr(policy, "predict_action") and isinstance(getattr(policy, "model", None), nn.Module)):
+        return None
+    target = _adapt_model(policy.model)
+    if target is None:
+        return None
+    target.boundaries = [(policy, "predict_action")]
+    target.episode_resets = [(policy, "reset")]
+    target.description = f"Diffusion Policy ({type(policy).__name__})"
+    return target
+
+
+register_model_adapter("Diffusion Policy policy", _adapt)
