@@ -4,7 +4,7 @@
 
 Runs the waypoint expert on env seeds seed, seed+1, ...; keeps successful episodes (each stops a
 few steps after the task succeeds, like robomimic's PH data) and writes them atomically, with the
-expert's own success rate in ``<out>.json``. Training seeds (here 0..) and evaluation seeds
+expert's own success rate in ``results/experts/<task>_expert.json``. Training seeds (here 0..) and evaluation seeds
 (eval/robot.py defaults to 100000..) are disjoint.
 """
 from __future__ import annotations
@@ -57,6 +57,8 @@ def main(argv=None) -> None:
     ap.add_argument("--episodes", type=int, default=100, help="expert attempts")
     ap.add_argument("--seed", type=int, default=0, help="first env seed")
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--report", type=Path, default=None,
+                    help="expert success report (default: results/experts/<task>_expert.json)")
     args = ap.parse_args(argv)
     demos, outcomes = [], []
     env = make_env(args.task)
@@ -76,7 +78,7 @@ def main(argv=None) -> None:
         "mean_demo_length": float(np.mean([len(d) for d in demos])) if demos else 0.0,
         "note": "scripted waypoint expert on true object poses: far more uniform than human demos",
     }
-    write_json(args.out.with_suffix(".json"), report)
+    write_json(args.report or REPO / "results" / "experts" / f"{args.task}_expert.json", report)
     print(f"expert {args.task}: {report['expert_successes']}/{args.episodes} successes; wrote {args.out}")
 
 

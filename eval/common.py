@@ -44,6 +44,7 @@ def machine() -> dict[str, Any]:
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
         "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        "load_average_1_5_15min": list(os.getloadavg()),  # > cpu_count: timings shared the CPU
     }
     return info
 

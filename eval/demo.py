@@ -1,36 +1,75 @@
-"""Demo (the README's main job until the robot pipeline lands): accelerate a Diffusion-Policy-sized
-transformer (DDPM-100, static 93% plan) and a DiT-S/2-sized model (DDIM-50, CFG, static 80% plan),
-print the wall-clock speed-up against dense in the same process, the MACs ratio and the output error.
+"""Main job on the bundled default: the bundled Lift Diffusion Policy in robosuite, dense vs a
+static sparse plan, a few test episodes each; prints success and the policy-call speed-up measured
+in this process.
 
-Weights are random, so the output error only shows that reuse is approximate, not what it costs in
-task quality (that is what eval/robot.py measures)."""
+    python eval/demo.py [--episodes 5] [--plan uniform:0.9:timestep] [--engine]
+
+``--engine`` instead runs the engine benchmark on a DP-sized transformer and a DiT-S/2 (random
+weights: speed and MACs only).
+"""
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench import bench_dit, bench_dp  # noqa: E402
+from common import REPO  # noqa: E402
+
+DEFAULT_CKPT = REPO / "checkpoints" / "lift_dpt"
 
 
-def main() -> None:
+def robot_demo(checkpoint: Path, episodes: int, plan_spec: str, seed: int) -> None:
+    import tts
+    from robot import parse_plan, run_wave
+    from tts.adapters.dp_policy import load_policy
+    from tts.adapters.robosuite_tasks import make_env
+
+    policy = load_policy(checkpoint)
+    envs = [make_env("lift") for _ in range(episodes)]
+    seeds = list(range(seed, seed + episodes))
+    print(f"tts demo: {checkpoint.name} on robosuite Lift, {episodes} test episodes (seeds {seeds[0]}..{seeds[-1]}),"
+          f" batch {episodes} (one env per episode)\n")
+    results = {}
+    for label, spec in (("dense", "dense"), (f"tts {plan_spec}", plan_spec)):
+        directions, plan = parse_plan(spec)
+        with tts.accelerate(policy, directions, plan=plan) as acc:
+            outcomes, lat = run_wave(policy, envs, seeds, "lift", torch.Generator().manual_seed(seed))
+            s = acc.summary()
+        dense_macs, realised = s.macs(s.calls[-1])
+        results[label] = np.median(lat)
+        print(f"{label:>28}: success {sum(o['success'] for o in outcomes)}/{episodes}, "
+              f"policy call {np.median(lat) * 1e3:6.1f} ms (median of {len(lat)}), "
+              f"sparsity {s.sparsity():.1%}, decoder MACs {dense_macs / max(realised, 1):.1f}x fewer")
+    dense, sparse = results.values()
+    print(f"\nspeed-up of a policy call: {dense / sparse:.2f}x (scripted-expert demonstrations, not human data)")
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", type=Path, default=DEFAULT_CKPT)
+    ap.add_argument("--episodes", type=int, default=5)
+    ap.add_argument("--plan", default="uniform:0.9:timestep")
+    ap.add_argument("--seed", type=int, default=100000)
+    ap.add_argument("--engine", action="store_true", help="engine benchmark on random-weight models instead")
+    args = ap.parse_args(argv)
     torch.manual_seed(0)
-    print("tts demo: static sparse plans, speed measured against dense in this process\n")
-    r = bench_dp(batch=1, reps=3, sparsity=0.93)
-    m = r["latency_s_median"]
-    print(f"Diffusion Policy transformer, batch 1, {r['plan']}: realised sparsity {r['realised_sparsity']:.1%}")
-    print(f"  dense (DP's stock loop) {m['dense_stock'] * 1e3:7.1f} ms | dense (fast loop) {m['dense_fast'] * 1e3:7.1f} ms"
-          f" | tts {m['tts'] * 1e3:6.1f} ms")
-    print(f"  speed-up {r['speedup_vs_dense_fast_loop']:.2f}x vs the same loop dense, "
-          f"{r['speedup_vs_dense_stock_loop']:.2f}x vs the stock loop; "
-          f"{r['macs_ratio_dense_fast_over_tts']:.2f}x fewer MACs; output rel. error {r['output_rel_error_vs_dense']:.3f}\n")
-    r = bench_dit("official", reps=1, sparsity=0.8)
-    m = r["latency_s_median"]
-    print(f"{r['model']}, {r['plan']}: realised sparsity {r['realised_sparsity']:.1%}")
-    print(f"  dense {m['dense']:.2f} s | tts {m['tts']:.2f} s | speed-up {r['speedup']:.2f}x; "
-          f"{r['macs_ratio']:.2f}x fewer MACs; output rel. error {r['output_rel_error_vs_dense']:.3f}")
+    if args.engine:
+        from bench import bench_dit, bench_dp
+
+        r = bench_dp(batch=1, reps=3, sparsity=0.93)
+        print(f"DP-T batch 1, {r['plan']}: {r['speedup_vs_dense_fast_loop']:.2f}x vs dense (same loop), "
+              f"{r['macs_ratio_dense_fast_over_tts']:.2f}x fewer MACs, output rel. error {r['output_rel_error_vs_dense']:.3f}")
+        r = bench_dit("official", reps=1, sparsity=0.8)
+        print(f"DiT-S/2, {r['plan']}: {r['speedup']:.2f}x, {r['macs_ratio']:.2f}x fewer MACs, "
+              f"output rel. error {r['output_rel_error_vs_dense']:.3f}")
+        return
+    if not args.checkpoint.with_suffix(".json").exists():
+        raise SystemExit(f"{args.checkpoint}.json not found: train it with eval/train_policy.py (see README)")
+    robot_demo(args.checkpoint, args.episodes, args.plan, args.seed)
 
 
 if __name__ == "__main__":

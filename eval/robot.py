@@ -88,7 +88,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--trust-pickle", action="store_true", help="allow official .ckpt files (runs pickled code)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch threads (use 1 when another job shares the CPU: oversubscribed OpenMP is 20x slower)")
     args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     label = args.method if args.method == "dense" else f"static-{args.plan.replace(':', '-')}"
     out = args.out or REPO / "results" / "robot" / f"{args.task}_{label}_{args.seed}.json"
