@@ -79,7 +79,11 @@ def main(argv=None) -> None:
     ap.add_argument("--run-dir", type=Path, default=None, help="resumable state (default: runs/<out name>)")
     ap.add_argument("--save-every", type=int, default=500)
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--export-only", action="store_true",
+                    help="write the checkpoint from the latest saved state (EMA) without training further")
     args = ap.parse_args(argv)
+    if args.export_only:
+        args.resume = True
 
     torch.manual_seed(args.seed)
     demos = read_demos(args.data, OBS_KEYS, limit=args.max_demos)
@@ -117,8 +121,10 @@ def main(argv=None) -> None:
     gen = torch.Generator().manual_seed(args.seed + step)
     t0 = time.time()
     policy.train()
-    with tqdm(total=args.steps, initial=step, desc=f"train {args.out.name}") as bar:
-        while step < args.steps:
+    if args.export_only and not state_path.exists():
+        raise SystemExit(f"--export-only: no saved state at {state_path}")
+    with tqdm(total=args.steps, initial=step, desc=f"train {args.out.name}", disable=args.export_only) as bar:
+        while step < args.steps and not args.export_only:
             idx = torch.randint(0, len(obs_w), (args.batch,), generator=gen)
             loss = policy.compute_loss(obs_w[idx], act_w[idx])
             opt.zero_grad(set_to_none=True)
@@ -138,7 +144,8 @@ def main(argv=None) -> None:
                                 "opt": opt.state_dict(), "sched": sched.state_dict(), "step": step,
                                 "losses": losses, "rng": torch.get_rng_state()}, tmp)
     meta = provenance(seeds={"train": args.seed})
-    meta.update(data=str(args.data), demos=len(demos), windows=len(obs_w), steps=args.steps, batch=args.batch,
+    meta.update(data=str(args.data), demos=len(demos), windows=len(obs_w), steps=args.steps, steps_done=step,
+                batch=args.batch,
                 lr=args.lr, final_loss=float(np.mean(losses[-200:])), train_seconds_this_run=time.time() - t0,
                 note="trained on scripted-expert demonstrations (uniform, not human data)")
     save_policy(ema.model, args.out, metadata=meta)

@@ -49,6 +49,12 @@ def test_second_accelerator_on_same_model_is_refused():
     with pytest.raises(RuntimeError, match="already accelerated"):
         tts.accelerate(model, ("timestep",))
     acc.remove()
+    # a failure half-way through installing leaves nothing behind
+    other = tts.accelerate(nn.Sequential(model.layers[2]), ("timestep",))
+    with pytest.raises(RuntimeError, match="already accelerated"):
+        tts.accelerate(model, ("timestep",))
+    assert all("forward" not in m.__dict__ for m in (model, model.layers[0], model.layers[1]))
+    other.remove()
 
 
 @pytest.mark.parametrize("directions", [("backward",), ("forward", "space"), "sideways"])

@@ -157,7 +157,11 @@ class Accelerator:
         self.removed = False
 
         self._patches = Patches(self)
-        self._install()
+        try:
+            self._install()
+        except BaseException:
+            self._patches.restore()  # never leave a model half-patched
+            raise
 
     # ------------------------------------------------------------------ install / remove
     def _build_owners(self) -> dict[nn.Module, Hashable]:
