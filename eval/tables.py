@@ -1,6 +1,6 @@
 """Collect result JSONs into markdown tables (no number is typed by hand).
 
-    python eval/tables.py            # writes results/robot/TABLE.md from results/robot/*.json
+    python eval/tables.py   # results/robot/TABLE.md and the README's robot table, from results/robot/*.json
 """
 from __future__ import annotations
 
@@ -36,6 +36,12 @@ def main() -> None:
             "(each holds its command, git SHA, seeds, machine and per-episode outcomes). Policies are trained "
             "on scripted-expert demonstrations, which are far more uniform than human data.\n\n" + robot_table(folder))
     write_atomic(folder / "TABLE.md", text)
+    readme = REPO / "README.md"
+    begin, end = "<!-- robot-table:begin (eval/tables.py) -->", "<!-- robot-table:end -->"
+    body = readme.read_text()
+    if begin in body and end in body:  # the README shows the same generated table
+        head, rest = body.split(begin, 1)
+        write_atomic(readme, head + begin + "\n" + robot_table(folder) + end + rest.split(end, 1)[1])
     print(text)
 
 
