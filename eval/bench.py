@@ -62,6 +62,24 @@ def per_sample_plan(batch: int, steps: int, nb: int, sparsity: float, seed: int 
     return tts.plans.from_tensor(dec)
 
 
+def measure(fns: dict[str, Callable[[], torch.Tensor]], dense: str, acc, reps: int) -> dict:
+    """Interleaved timings, FlopCounterMode MACs and output error of ``fns['tts']`` vs ``fns[dense]``;
+    removes the accelerator afterwards."""
+    times = interleaved(fns, reps)
+    err = rel_err(fns["tts"](), fns[dense]())
+    macs = {k: flop_counter_macs(fn) for k, fn in fns.items()}
+    summary = acc.summary()
+    acc.remove()
+    return {
+        "realised_sparsity": summary.sparsity_of(summary.calls[-1]),
+        "latency_s_median": {k: statistics.median(v) for k, v in times.items()},
+        "latency_s_all": times,
+        "macs": macs,
+        "output_rel_error_vs_dense": err,
+        "summary": summary,
+    }
+
+
 def bench_dp(batch: int, reps: int, sparsity: float, per_sample: bool = False) -> dict:
     from diffusers import DDPMScheduler
 
@@ -84,25 +102,17 @@ def bench_dp(batch: int, reps: int, sparsity: float, per_sample: bool = False) -
 
     fns = {"dense_stock": lambda: run(dense_model, fast=False), "dense_fast": lambda: run(dense_model),
            "tts": lambda: run(model)}
-    times = interleaved(fns, reps)
-    dense_out, sparse_out = run(dense_model), run(model)
-    macs = {k: flop_counter_macs(fn) for k, fn in fns.items()}
-    summary = acc.summary()
-    acc.remove()
-    med = {k: statistics.median(v) for k, v in times.items()}
+    m = measure(fns, "dense_fast", acc, reps)
+    summary, med = m.pop("summary"), m["latency_s_median"]
     return {
         "model": "DP-T: 8 decoder layers, width 256, 4 heads, horizon 10, obs 2x19, action 7, DDPM-100",
         "batch": batch,
         "plan": ("per-sample random " if per_sample else "") + plan.describe(),
-        "realised_sparsity": summary.sparsity_of(summary.calls[-1]),
-        "latency_s_median": med,
-        "latency_s_all": times,
+        **m,
         "speedup_vs_dense_fast_loop": med["dense_fast"] / med["tts"],
         "speedup_vs_dense_stock_loop": med["dense_stock"] / med["tts"],
-        "macs": macs,
-        "macs_ratio_dense_fast_over_tts": macs["dense_fast"] / macs["tts"],
+        "macs_ratio_dense_fast_over_tts": m["macs"]["dense_fast"] / m["macs"]["tts"],
         "macs_analytic_decoder_only": dict(zip(("dense", "realised"), summary.macs(summary.calls[-1]))),
-        "output_rel_error_vs_dense": rel_err(sparse_out, dense_out),
     }
 
 
@@ -146,23 +156,16 @@ def bench_dit(kind: str, reps: int, sparsity: float, steps: int = 50) -> dict:
     dense_model = copy.deepcopy(model)
     acc = tts.accelerate(model, ("forward", "timestep"), plan=plan)
     fns = {"dense": lambda: sample(dense_model), "tts": lambda: sample(model)}
-    times = interleaved(fns, reps)
-    dense_out, sparse_out = sample(dense_model), sample(model)
-    macs = {k: flop_counter_macs(fn) for k, fn in fns.items()}
-    summary = acc.summary()
-    acc.remove()
-    med = {k: statistics.median(v) for k, v in times.items()}
+    m = measure(fns, "dense", acc, reps)
+    m.pop("summary")
+    med = m["latency_s_median"]
     return {
         "model": f"DiT-S/2 ({kind}): 12 blocks, width 384, 6 heads, 32x32x4 latents, DDIM-{steps}, CFG batch 2",
         "batch": 2,
         "plan": plan.describe(),
-        "realised_sparsity": summary.sparsity_of(summary.calls[-1]),
-        "latency_s_median": med,
-        "latency_s_all": times,
+        **m,
         "speedup": med["dense"] / med["tts"],
-        "macs": macs,
-        "macs_ratio": macs["dense"] / macs["tts"],
-        "output_rel_error_vs_dense": rel_err(sparse_out, dense_out),
+        "macs_ratio": m["macs"]["dense"] / m["macs"]["tts"],
     }
 
 
