@@ -60,7 +60,8 @@ def make_env(task: str, seed: Optional[int] = None, render: bool = False):
 
     import robosuite as suite
 
-    logging.getLogger("robosuite").setLevel(logging.ERROR)  # controller-config chatter on every reset
+    for name in ("robosuite", "robosuite_logs"):  # controller-config chatter on every reset
+        logging.getLogger(name).setLevel(logging.ERROR)
 
     env = suite.make(TASKS[task].env_name, seed=seed, **_env_kwargs(task, render))
     return env
@@ -105,7 +106,13 @@ def _toward(eef: np.ndarray, target: np.ndarray, gain: float = 10.0) -> np.ndarr
 
 
 class _Waypoints:
-    """A sequence of phases; each phase returns (position target, gripper, done?)."""
+    """A sequence of phases; each phase returns (position target, gripper, done?).
+
+    ``noisy_phases``: phases in which demonstration collection may perturb the executed action
+    (DART-style noise injection: the clean expert action is recorded, so the data shows how to
+    recover from the perturbed states a learned policy drifts into)."""
+
+    noisy_phases: tuple[int, ...] = ()
 
     def __init__(self, env):
         self.env = env
@@ -121,6 +128,8 @@ class _Waypoints:
 
 class LiftExpert(_Waypoints):
     """Above the cube, down, close, lift."""
+
+    noisy_phases = (0, 1)
 
     def act(self, raw: dict) -> np.ndarray:
         eef, cube = raw["robot0_eef_pos"], raw["cube_pos"]
@@ -143,12 +152,19 @@ class LiftExpert(_Waypoints):
 
 
 class CanExpert(_Waypoints):
-    """Above the can, down, grip, lift, carry over the target bin, lower, release."""
+    """Above the can, down, grip, lift, carry over the target bin, lower, release.
+
+    If the can is not in the hand while lifting or carrying (a missed grasp, or a drop), the expert
+    starts again from above the can, so perturbed demonstrations also show re-grasping."""
+
+    noisy_phases = (0, 1, 4)
 
     def act(self, raw: dict) -> np.ndarray:
         env = self.env
         eef, can = raw["robot0_eef_pos"], raw["Can_pos"]
         goal = np.array(env.target_bin_placements[env.object_to_id["can"]])
+        if self.phase in (3, 4, 5) and np.linalg.norm(eef - (can + [0, 0, 0.005])) > 0.05:
+            self.phase, self.counter = 0, 0  # the can is not between the fingers: start over
         if self.phase == 0:
             target = can + [0, 0, 0.1]
             if np.linalg.norm(eef - target) < 0.01:

@@ -1,6 +1,7 @@
 """Scripted-expert demonstrations in robomimic's hdf5 layout.
 
     python eval/collect_demos.py --task lift --episodes 100 --seed 0 --out data/lift_expert.hdf5
+    python eval/collect_demos.py --task can --episodes 200 --seed 0 --noise 0.3 --out data/can_expert_noisy.hdf5
 
 Runs the waypoint expert on env seeds seed, seed+1, ...; keeps successful episodes (each stops a
 few steps after the task succeeds, like robomimic's PH data) and writes them atomically, with the
@@ -23,9 +24,12 @@ from tts.adapters.robomimic_data import Demo, write_demos  # noqa: E402
 from tts.adapters.robosuite_tasks import EXPERTS, OBS_KEYS, TASKS, env_args, low_dim_obs, make_env, reset_env  # noqa: E402
 
 
-def run_expert(env, task: str, seed: int, extra_steps: int = 10) -> tuple[bool, Demo]:
+def run_expert(env, task: str, seed: int, extra_steps: int = 10, noise: float = 0.0) -> tuple[bool, Demo]:
+    """One expert episode; with ``noise`` > 0 the executed position command gets Gaussian noise of
+    that std (action units) in the expert's ``noisy_phases`` while the clean command is recorded."""
     raw = reset_env(env, seed)
     expert = EXPERTS[task](env)
+    rng = np.random.default_rng(seed + 7919)
     obs = {k: [] for k in OBS_KEYS}
     actions, rewards, dones, states = [], [], [], []
     success_at = None
@@ -35,7 +39,10 @@ def run_expert(env, task: str, seed: int, extra_steps: int = 10) -> tuple[bool, 
             obs[k].append(lo[k])
         states.append(env.sim.get_state().flatten())
         a = expert.act(raw)
-        raw, r, _, _ = env.step(a)
+        executed = a.copy()
+        if noise > 0 and expert.phase in expert.noisy_phases:
+            executed[:3] = np.clip(executed[:3] + rng.normal(0.0, noise, 3), -1.0, 1.0)
+        raw, r, _, _ = env.step(executed)
         success = bool(env._check_success())
         actions.append(a)
         rewards.append(float(success))
@@ -47,7 +54,7 @@ def run_expert(env, task: str, seed: int, extra_steps: int = 10) -> tuple[bool, 
             break
     demo = Demo(obs={k: np.stack(v) for k, v in obs.items()}, actions=np.stack(actions),
                 rewards=np.array(rewards), dones=np.array(dones), states=np.stack(states),
-                attrs={"seed": seed})
+                attrs={"seed": seed, "noise": noise})
     return success_at is not None, demo
 
 
@@ -56,6 +63,8 @@ def main(argv=None) -> None:
     ap.add_argument("--task", choices=sorted(EXPERTS), required=True)
     ap.add_argument("--episodes", type=int, default=100, help="expert attempts")
     ap.add_argument("--seed", type=int, default=0, help="first env seed")
+    ap.add_argument("--noise", type=float, default=0.0,
+                    help="DART-style noise std on executed position commands (clean actions are recorded)")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--report", type=Path, default=None,
                     help="expert success report (default: results/experts/<task>_expert.json)")
@@ -63,7 +72,7 @@ def main(argv=None) -> None:
     demos, outcomes = [], []
     env = make_env(args.task)
     for i in tqdm(range(args.episodes), desc=f"expert {args.task}"):
-        ok, demo = run_expert(env, args.task, args.seed + i)
+        ok, demo = run_expert(env, args.task, args.seed + i, noise=args.noise)
         outcomes.append(ok)
         if ok:
             demos.append(demo)
@@ -71,6 +80,7 @@ def main(argv=None) -> None:
     report = {
         "provenance": provenance(seeds=list(range(args.seed, args.seed + args.episodes))),
         "task": args.task,
+        "noise": args.noise,
         "expert_attempts": args.episodes,
         "expert_successes": int(sum(outcomes)),
         "expert_success_rate": float(np.mean(outcomes)),

@@ -225,7 +225,8 @@ def test_mixed_batch_equals_each_sample_alone():
     for s in range(batch):
         with tts.accelerate(model, ("forward", "timestep"), plan=tts.plans.from_tensor(dec[s]), blocks={"blocks.*": spec}):
             alone = sample(model, x0[s:s + 1], torch.arange(1))
-        torch.testing.assert_close(together[s:s + 1], alone, rtol=0, atol=1e-6)
+        # equal up to GEMM round-off (a batched matmul may pick another kernel than a 1-row one)
+        torch.testing.assert_close(together[s:s + 1], alone, rtol=1e-5, atol=1e-5)
 
 
 def test_new_call_detected_from_timestep_and_explicitly():
