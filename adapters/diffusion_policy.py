@@ -233,7 +233,8 @@ def _adapt(model: Any) -> Optional[Target]:
         sites = [(f"encoder.layers.{i}", m, encoder_layer_spec(m)) for i, m in enumerate(model.encoder.layers)]
     else:
         return None
-    return Target(denoiser=model, sites=sites, description="Diffusion Policy transformer")
+    return Target(denoiser=model, sites=sites, condition=(model, "condition_memory"),
+                  description="Diffusion Policy transformer")
 
 
 register_model_adapter("Diffusion Policy transformer", _adapt)

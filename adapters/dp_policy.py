@@ -11,19 +11,22 @@ observation history, action chunking, DDPM/DDIM sampling, checkpoint loading.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Optional, Sequence, Union
 
 import numpy as np
 import torch
 import torch.nn as nn
+from diffusers.utils.torch_utils import randn_tensor
 
 from tts.io import atomic_path
 from tts.spec import Target, register_model_adapter
 
 from .diffusion_policy import DPTransformerConfig, TransformerForDiffusion, _adapt as _adapt_model
 from .schedulers import FastDDPM
+
+Generators = Union[None, torch.Generator, Sequence[torch.Generator]]
 
 __all__ = ["Normalizer", "PolicyConfig", "DiffusionTransformerLowdimPolicy", "load_policy", "save_policy"]
 
@@ -96,12 +99,22 @@ class DiffusionTransformerLowdimPolicy(nn.Module):
         self.model = TransformerForDiffusion(DPTransformerConfig(**cfg.model))
         self.obs_normalizer = Normalizer(sum(cfg.obs_dims))
         self.action_normalizer = Normalizer(cfg.action_dim)
-        self.scheduler = _make_scheduler(cfg)
-        self._fast = FastDDPM(self.scheduler) if cfg.scheduler == "ddpm" else None
+        self.set_sampler()
 
     @property
     def device(self) -> torch.device:
         return self.model.pos_emb.device
+
+    def set_sampler(self, scheduler: Optional[str] = None, steps: Optional[int] = None) -> "DiffusionTransformerLowdimPolicy":
+        """Switch the sampler (``"ddpm"`` / ``"ddim"``) and/or its number of denoising steps, e.g. the
+        fewer-steps baseline DDIM-10. The weights are untouched."""
+        steps = self.cfg.num_inference_steps if steps is None else int(steps)
+        if not 1 <= steps <= self.cfg.num_train_timesteps:
+            raise ValueError(f"steps must be in 1..{self.cfg.num_train_timesteps}, got {steps}")
+        self.cfg = replace(self.cfg, scheduler=scheduler or self.cfg.scheduler, num_inference_steps=steps)
+        self.scheduler = _make_scheduler(self.cfg)
+        self._fast = FastDDPM(self.scheduler) if self.cfg.scheduler == "ddpm" else None
+        return self
 
     def reset(self) -> None:
         """Episode boundary (no state of its own; tts hooks it to clear the rollout cache)."""
@@ -118,15 +131,25 @@ class DiffusionTransformerLowdimPolicy(nn.Module):
             raise ValueError(f"observation dim {x.shape[-1]} != expected {sum(self.cfg.obs_dims)}")
         return x.to(self.device)
 
-    @torch.no_grad()
-    def predict_action(self, obs: dict[str, Any], generator: Optional[torch.Generator] = None) -> dict[str, torch.Tensor]:
+    def predict_action(self, obs: dict[str, Any], generator: Generators = None, *,
+                       enable_grad: bool = False) -> dict[str, torch.Tensor]:
+        """Sample an action chunk. ``generator``: one ``torch.Generator`` for the batch, or a list
+        with one per sample (each sample's noise then does not depend on the batch it is in).
+        ``enable_grad``: keep the autograd graph (pruner training; the policy's weights stay frozen)."""
+        with torch.set_grad_enabled(enable_grad):
+            return self._predict(obs, generator)
+
+    def _predict(self, obs: dict[str, Any], generator: Generators) -> dict[str, torch.Tensor]:
         cfg = self.cfg
         nobs = self.obs_normalizer.normalize(self.obs_vector(obs))
         if nobs.dim() != 3 or nobs.shape[1] < cfg.n_obs_steps:
             raise ValueError(f"observations must be [B, >= {cfg.n_obs_steps}, dim], got {tuple(nobs.shape)}")
         cond = nobs[:, -cfg.n_obs_steps:]
         B = cond.shape[0]
-        x = torch.randn(B, cfg.horizon, cfg.action_dim, generator=generator, device=self.device)
+        if isinstance(generator, (list, tuple)) and len(generator) != B:
+            raise ValueError(f"got {len(generator)} generators for a batch of {B}")
+        x = randn_tensor((B, cfg.horizon, cfg.action_dim), generator=generator, device=self.device,
+                         dtype=torch.float32)
         if self._fast is not None:
             memory = self.model.condition_memory(self._fast.timesteps, cond)
             for i, t in enumerate(self._fast.timesteps):

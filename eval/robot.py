@@ -3,12 +3,15 @@
     python eval/robot.py --task lift --checkpoint checkpoints/lift_dpt --method dense \
         --episodes 50 --seed 100000 [--n-envs 10] [--resume]
     python eval/robot.py ... --method static --plan uniform:0.93:timestep
+    python eval/robot.py ... --method tts --pruner checkpoints/lift_pruner [--sparsity 0.93]
 
 Episodes run in waves of ``--n-envs`` environments whose observations are batched into one policy
 call (batch = n_envs). Test seeds start at 100000, disjoint from the demonstration seeds. Every call
 is timed; the JSON reports the median / p90 latency of a policy call (batch as run), calls/s
 (= 1 / latency) and actions/s (= n_action_steps / latency per environment), realised sparsity and
-MACs (dense vs realised, decoder branches + rest, profiled analytically). One JSON per run,
+MACs (dense vs realised, decoder branches + rest, profiled analytically; with a pruner, its MACs
+are reported and added). ``--method tts`` runs a trained pruner: argmax decisions (the paper) or,
+with ``--sparsity``, exactly that fraction reused per call (ranked by the pruner). One JSON per run,
 written atomically after each wave; ``--resume`` skips the seeds already finished.
 """
 from __future__ import annotations
@@ -19,6 +22,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
@@ -33,19 +37,60 @@ from tts.adapters.robosuite_tasks import OBS_KEYS, TASKS, low_dim_obs, make_env,
 
 
 def parse_plan(spec: str) -> tuple[tuple[str, ...], "tts.plans.Plan"]:
-    """``uniform:0.93:timestep`` | ``every_n:10:timestep`` | ``dense`` -> (directions, plan)."""
+    """``uniform:0.93:timestep`` | ``every_n:10:timestep`` | ``file:PATH`` (a searched schedule,
+    eval/search_static.py) | ``dense`` -> (directions, plan)."""
     parts = spec.split(":")
+    if parts[0] == "file" and len(parts) == 2:
+        doc = json.loads(Path(parts[1]).read_text())
+        return tuple(doc["directions"]), tts.plans.from_tensor(doc["grid"])
     if parts[0] == "dense":
         return ("forward", "timestep", "rollout"), tts.plans.dense()
     if parts[0] == "uniform" and len(parts) == 3:
         return (parts[2],), tts.plans.uniform(float(parts[1]), parts[2])
     if parts[0] == "every_n" and len(parts) == 3:
         return (parts[2],), tts.plans.every_n(int(parts[1]), parts[2])
-    raise ValueError(f"unknown plan {spec!r}; use dense, uniform:<sparsity>:<direction> or every_n:<n>:<direction>")
+    raise ValueError(f"unknown plan {spec!r}; use dense, uniform:<sparsity>:<direction>, every_n:<n>:<direction> "
+                     "or file:<path>")
 
 
-def run_wave(policy, envs, seeds, task, generator) -> tuple[list[dict], list[float]]:
-    """Run one episode per env in lockstep; returns per-episode outcomes and per-call latencies."""
+def noise_seed(episode_seed: int, call: int) -> int:
+    """Seed of the sampling noise of one policy call of one episode (recorded trajectories)."""
+    return episode_seed * 1000 + call
+
+
+def method_label(args) -> str:
+    if args.method == "dense":
+        return "dense"
+    if args.method == "ddim":
+        return f"ddim{args.steps}"
+    if args.method == "static":
+        plan = Path(args.plan.split(":", 1)[1]).stem if args.plan.startswith("file:") else args.plan.replace(":", "-")
+        return f"static-{plan}"
+    if args.pruner is None:
+        raise SystemExit("--method tts needs --pruner PATH (train one with eval/train_pruner.py)")
+    return f"tts-{args.pruner.name}" + ("" if args.sparsity is None else f"-budget{args.sparsity:g}")
+
+
+def accelerate(policy, args) -> "tts.Accelerator":
+    """The method of ``args`` installed on ``policy`` (dense: a dense plan, bit-identical, gives MACs)."""
+    if args.method == "tts":
+        pruner = tts.load_pruner(args.pruner)
+        return tts.accelerate(policy, pruner.config.directions, pruner=pruner, sparsity=args.sparsity)
+    if args.method == "ddim":
+        policy.set_sampler("ddim", args.steps)
+    directions, plan = parse_plan(args.plan if args.method == "static" else "dense")
+    return tts.accelerate(policy, directions, plan=plan)
+
+
+def run_wave(policy, envs, seeds, task, generator, record: bool = False,
+             horizon: Optional[int] = None) -> tuple[list[dict], list[float]]:
+    """Run one episode per env in lockstep; returns per-episode outcomes and per-call latencies.
+
+    ``record=True``: every env gets its own noise generator per call (seeded by :func:`noise_seed`,
+    so a sample's noise does not depend on the batch) and each outcome carries its trajectory: the
+    obs window fed to the policy [R, To, obs_dim], the dense ``action_pred`` [R, H, Da], the
+    executed chunk [R, Ta, Da] and the noise seeds [R] (R = calls until success or the horizon).
+    """
     cfg = policy.cfg
     n = len(seeds)
     policy.reset()
@@ -53,14 +98,25 @@ def run_wave(policy, envs, seeds, task, generator) -> tuple[list[dict], list[flo
     hist = [collections.deque([low_dim_obs(r)] * cfg.n_obs_steps, maxlen=cfg.n_obs_steps) for r in raws]
     success = [False] * n
     steps = [0] * n
+    traj = [{"obs": [], "action_pred": [], "action": [], "noise_seed": []} for _ in range(n)]
     latencies = []
-    horizon = TASKS[task].horizon
+    horizon = horizon or TASKS[task].horizon
     t = 0
+    call = 0
     while t < horizon and not all(success):
         obs = {k: np.stack([np.stack([h[j][k] for j in range(cfg.n_obs_steps)]) for h in hist]) for k in OBS_KEYS}
+        gen = [torch.Generator().manual_seed(noise_seed(s, call)) for s in seeds] if record else generator
         t0 = time.perf_counter()
-        actions = policy.predict_action(obs, generator=generator)["action"].cpu().numpy()
+        out = policy.predict_action(obs, generator=gen)
         latencies.append(time.perf_counter() - t0)
+        actions = out["action"].cpu().numpy()
+        if record:
+            window = policy.obs_vector(obs).cpu().numpy()
+            for e in range(n):
+                if not success[e]:
+                    for key, val in (("obs", window[e]), ("action_pred", out["action_pred"][e].cpu().numpy()),
+                                     ("action", actions[e]), ("noise_seed", noise_seed(seeds[e], call))):
+                        traj[e][key].append(val)
         for a_i in range(actions.shape[1]):
             for e in range(n):
                 if success[e]:
@@ -73,15 +129,26 @@ def run_wave(policy, envs, seeds, task, generator) -> tuple[list[dict], list[flo
             t += 1
             if t >= horizon or all(success):
                 break
-    return [{"seed": s, "success": bool(ok), "env_steps": st} for s, ok, st in zip(seeds, success, steps)], latencies
+        call += 1
+    outcomes = [{"seed": s, "success": bool(ok), "env_steps": st} for s, ok, st in zip(seeds, success, steps)]
+    if record:
+        for o, tr in zip(outcomes, traj):
+            o["trajectory"] = {k: np.stack(v) for k, v in tr.items()}
+    return outcomes, latencies
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--task", choices=sorted(TASKS), required=True)
     ap.add_argument("--checkpoint", type=Path, required=True)
-    ap.add_argument("--method", choices=["dense", "static"], default="dense")
+    ap.add_argument("--method", choices=["dense", "static", "tts", "ddim"], default="dense",
+                    help="ddim: the fewer-steps baseline (DDIM with --steps, dense)")
+    ap.add_argument("--steps", type=int, default=10, help="for --method ddim")
     ap.add_argument("--plan", default="uniform:0.93:timestep", help="for --method static")
+    ap.add_argument("--pruner", type=Path, default=None, help="for --method tts: a trained pruner (eval/train_pruner.py)")
+    ap.add_argument("--sparsity", type=float, default=None,
+                    help="for --method tts: exact-budget mode at this sparsity (default: the pruner's argmax)")
+    ap.add_argument("--horizon", type=int, default=None, help="env steps per episode (default: the task's; for smoke tests)")
     ap.add_argument("--episodes", type=int, default=50)
     ap.add_argument("--seed", type=int, default=100000, help="first test seed")
     ap.add_argument("--n-envs", type=int, default=10)
@@ -94,7 +161,7 @@ def main(argv=None) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
-    label = args.method if args.method == "dense" else f"static-{args.plan.replace(':', '-')}"
+    label = method_label(args)
     out = args.out or REPO / "results" / "robot" / f"{args.task}_{label}_{args.seed}.json"
     seeds = list(range(args.seed, args.seed + args.episodes))
     done: dict[int, dict] = {}
@@ -106,8 +173,7 @@ def main(argv=None) -> dict:
         print(f"resuming: {len(done)} episodes already in {out}")
 
     policy = load_policy(args.checkpoint, trust_pickle=args.trust_pickle)
-    directions, plan = parse_plan("dense" if args.method == "dense" else args.plan)
-    acc = tts.accelerate(policy, directions, plan=plan)  # dense plan: bit-identical, gives MACs
+    acc = accelerate(policy, args)
     envs = [make_env(args.task) for _ in range(min(args.n_envs, len(seeds)))]
     todo = [s for s in seeds if s not in done]
     generator = torch.Generator().manual_seed(args.seed)
@@ -115,7 +181,7 @@ def main(argv=None) -> dict:
     with tqdm(total=len(seeds), initial=len(done), desc=f"{args.task} {label}") as bar:
         for w in range(0, len(todo), len(envs)):
             wave = todo[w:w + len(envs)]
-            outcomes, lat = run_wave(policy, envs, wave, args.task, generator)
+            outcomes, lat = run_wave(policy, envs, wave, args.task, generator, horizon=args.horizon)
             latencies += lat
             for o in outcomes:
                 done[o["seed"]] = o

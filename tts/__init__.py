@@ -15,6 +15,7 @@ import torch.nn as nn
 from . import plans
 from .engine import Accelerator, discover_sites
 from .plans import Plan, check_directions, check_sparsity
+from .pruner import Pruner, PrunerConfig, PrunerModule, PrunerPlan, StaticRouter, load_pruner, save_pruner
 from .spec import BlockSpec, BranchSpec, Lazy, Target, model_adapters, register_block_family, register_model_adapter
 from .summary import Summary
 
@@ -25,6 +26,12 @@ __all__ = [
     "BranchSpec",
     "Lazy",
     "Plan",
+    "Pruner",
+    "PrunerConfig",
+    "PrunerPlan",
+    "StaticRouter",
+    "load_pruner",
+    "save_pruner",
     "Summary",
     "Target",
     "plans",
@@ -63,6 +70,8 @@ def accelerate(
     *,
     plan: Optional[Plan] = None,
     sparsity: Optional[float] = None,
+    pruner: Optional[PrunerModule] = None,
+    parallel: bool = True,
     blocks: BlocksArg = None,
     fast_dense: bool = True,
 ) -> Accelerator:
@@ -71,12 +80,26 @@ def accelerate(
     directions: any subset of ``("forward", "timestep", "rollout")``.
     plan: a :class:`tts.plans.Plan`; default dense (outputs bit-identical) or, with ``sparsity``,
         ``plans.uniform(sparsity, "timestep")`` (FORA-style evenly spread full steps).
-    sparsity: target fraction of reused (step, branch) decisions, in [0, 1).
+    sparsity: target fraction of reused (step, branch) decisions, in [0, 1). With ``pruner``, it
+        switches the pruner to exact-budget mode (that many decisions reuse, ranked by the pruner).
+    pruner: a trained :class:`tts.Pruner` or :class:`tts.StaticRouter` (see ``eval/train_pruner.py``): decisions per sample and
+        call, predicted from the model's condition memory (argmax, as in the paper, unless
+        ``sparsity`` is given).
+    parallel: run the pruner on a worker thread / side CUDA stream while step 0 runs.
     blocks: ``{glob over module names: BlockSpec}`` for blocks tts does not recognise.
     fast_dense: when a block computes every branch for every sample and nothing needs caching,
         call the block's own forward (keeps PyTorch fast paths, bit-identical outputs).
     """
     dirs = check_directions(directions)
+    if pruner is not None:
+        if plan is not None:
+            raise ValueError("give either plan= or pruner=, not both")
+        missing = [d for d in pruner.config.directions if d not in dirs]
+        if missing:
+            raise ValueError(f"the pruner reuses along {missing}, which is not in directions={dirs}")
+        plan = PrunerPlan(pruner, mode="argmax" if sparsity is None else "budget", sparsity=sparsity,
+                          parallel=parallel)
+        sparsity = None
     if sparsity is not None:
         sparsity = check_sparsity(sparsity)
         if plan is not None:

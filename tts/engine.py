@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import fnmatch
 import functools
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, Hashable, Mapping, Optional, Sequence, Union
 
@@ -151,6 +152,9 @@ class Accelerator:
         self._memo: dict[int, tuple] = {}
         self._all_compute = torch.zeros(1, self.num_branches, dtype=torch.int8)
         self._profile_key: Optional[tuple] = None
+        self._soft: Optional[torch.Tensor] = None  # [B, nb, O] straight-through gates (training)
+        self._soft_codes: list[int] = list(getattr(plan, "codes", []))
+        self._timing: dict[str, float] = {}
         self.macs_per_row: Optional[dict[Hashable, float]] = None
         self.calls: list[CallRecord] = []
         self.max_records = 1000
@@ -203,9 +207,36 @@ class Accelerator:
         def make_boundary(orig):
             def call(*args, **kwargs):
                 self._pending_call = True
-                return orig(*args, **kwargs)
+                n_calls = len(self.calls)
+                t0 = time.perf_counter()
+                try:
+                    return orig(*args, **kwargs)
+                finally:
+                    if len(self.calls) > n_calls or (self.calls and n_calls >= self.max_records):
+                        self.calls[-1].timing["total"] = time.perf_counter() - t0
 
             return call
+
+        def make_condition(orig):
+            def call(*args, **kwargs):
+                t0 = time.perf_counter()
+                memory = orig(*args, **kwargs)
+                self._timing = {"encoder": time.perf_counter() - t0}
+                observe = getattr(self.plan, "observe", None)
+                if observe is not None and not self.removed:
+                    observe(memory, dense=self._episode_dense)
+                return memory
+
+            return call
+
+        if self.target.condition is not None:
+            self._patches.patch(*self.target.condition, make_condition)
+        elif getattr(self.plan, "observe", None) is not None:
+            raise ValueError(
+                f"{self.plan.describe()} reads the condition memory, but the adapter of "
+                f"{self.target.description or type(self.target.denoiser).__name__} declares no "
+                "Target.condition (the function that encodes the condition for all steps)"
+            )
 
         def make_reset(orig):
             def call(*args, **kwargs):
@@ -301,10 +332,13 @@ class Accelerator:
         if self._k == 0:
             self._maybe_profile(orig, args, kwargs, batch)
         self._in_step = True
+        t0 = time.perf_counter()
         try:
             out = orig(*args, **kwargs)
         finally:
             self._in_step = False
+        timing = self.calls[-1].timing
+        timing["decoder"] = timing.get("decoder", 0.0) + time.perf_counter() - t0
         self._k += 1
         return out
 
@@ -328,9 +362,17 @@ class Accelerator:
         self.plan.begin_call(len(self.calls), batch)
         if len(self.calls) >= self.max_records:
             self.calls.pop(0)
-        self.calls.append(CallRecord(batch=batch, dense=self._dense_call))
+        record = CallRecord(batch=batch, dense=self._dense_call, timing=dict(self._timing))
+        self._timing = {}
+        if not self._dense_call:
+            record.pruner_macs = getattr(self.plan, "macs_per_sample", 0.0) * batch
+        self.calls.append(record)
 
     def _prepare_step(self, k: int, batch: int) -> None:
+        self._soft = None
+        if getattr(self.plan, "soft", False) and k > 0 and not self._dense_call:
+            self._prepare_soft(k)
+            return
         if k == 0 or self._dense_call:
             rows = self._all_compute
         else:
@@ -340,6 +382,8 @@ class Accelerator:
                 if bool(miss.any()):
                     self.calls[-1].fallbacks += int(miss.sum()) * (batch if rows.shape[0] == 1 else 1)
                     rows = rows.masked_fill(miss, COMPUTE)
+        if k == 1:  # the pruner (if any) has finished: record its time and the wait for it
+            self.calls[-1].timing.update(getattr(self.plan, "timing", {}))
         self.calls[-1].steps.append(rows)
         memo = self._memo.get(id(rows))
         if memo is None or memo[0] is not rows:
@@ -349,6 +393,19 @@ class Accelerator:
             self._memo[id(rows)] = memo
         _, self._row, self._groups, all_compute = memo
         self._passthrough = self.fast_dense and all_compute and not self._store
+
+    def _prepare_soft(self, k: int) -> None:
+        """Training path: every branch computes; outputs are mixed with straight-through gates."""
+        g = self.plan.soft_step(k)
+        codes = self._soft_codes
+        if self.use_rollout and not self.cache.rollout_ready(k) and ROLLOUT in codes:
+            r = codes.index(ROLLOUT)
+            g = torch.cat([g[..., :1] + g[..., r:r + 1], g[..., 1:r], torch.zeros_like(g[..., r:r + 1]),
+                           g[..., r + 1:]], dim=-1)
+        self._soft = g
+        table = torch.tensor(codes, dtype=torch.int8)
+        self.calls[-1].steps.append(table[g.detach().argmax(-1).cpu()])
+        self._passthrough = False
 
     def _fast_form(self, rows: torch.Tensor, batch: int) -> tuple[list[int], dict, bool]:
         """Per branch: one code if all samples agree, else -1 and (compute rows, [(code, rows)])."""
@@ -393,6 +450,8 @@ class Accelerator:
     # ------------------------------------------------------------------ branch execution
     def _run(self, base: int, i: int, fn: Callable, *batched: Any) -> torch.Tensor:
         b = base + i
+        if self._soft is not None:
+            return self._run_soft(b, fn, batched)
         code = self._row[b]
         if code == COMPUTE:
             d = fn(*[a() if type(a) is Lazy else a for a in batched])
@@ -424,4 +483,23 @@ class Accelerator:
             out.index_copy_(dim, idx, src.index_select(dim, idx))
         if cidx is not None and self._store:
             self.cache.write_rows(b, self._k, cidx, d, dim)
+        return out
+
+    def _run_soft(self, b: int, fn: Callable, batched: tuple) -> torch.Tensor:
+        d = fn(*[a() if type(a) is Lazy else a for a in batched])
+        g = self._soft[:, b]  # [B, O]
+        dim = self._batch_dim[b]
+        shape = [1] * d.dim()
+        shape[dim] = g.shape[0]
+        out = g[:, 0].reshape(shape).to(d.dtype) * d
+        for j, code in enumerate(self._soft_codes[1:], 1):
+            cached = self.cache.read(code, b, self._k)
+            if cached is not None:
+                out = out + g[:, j].reshape(shape).to(d.dtype) * cached
+        computed = g[:, 0].detach() > 0.5
+        if bool(computed.all()):
+            self.cache.write(b, self._k, d.detach())
+        elif bool(computed.any()):
+            rows = computed.nonzero().flatten()
+            self.cache.write_rows(b, self._k, rows, d.detach().index_select(dim, rows), dim)
         return out

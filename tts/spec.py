@@ -112,6 +112,9 @@ class Target:
         (``predict_action``). Without boundaries, a new call is detected from the timestep argument.
     episode_resets: (object, method name) pairs that end an episode (``reset``): clears the rollout cache.
     supports_rollout: False for models that are never used in rollouts (image generators).
+    condition: (object, method name) of the function that encodes the condition for all K steps of
+        a call at once ([B, K, Tc, D]); its output is what a learned pruner reads (DP-T:
+        ``model.condition_memory``).
     """
 
     denoiser: nn.Module
@@ -119,6 +122,7 @@ class Target:
     boundaries: list[tuple[Any, str]] = field(default_factory=list)
     episode_resets: list[tuple[Any, str]] = field(default_factory=list)
     supports_rollout: Optional[bool] = None
+    condition: Optional[tuple[Any, str]] = None
     timestep_of: Callable[[tuple, dict], Any] = _default_timestep
     batch_of: Callable[[tuple, dict], int] = _first_tensor_batch
     description: str = ""

@@ -22,6 +22,8 @@ class CallRecord:
     dense: bool = False
     steps: list[torch.Tensor] = field(default_factory=list)
     fallbacks: int = 0
+    timing: dict[str, float] = field(default_factory=dict)  # seconds: encoder, pruner, wait, decoder, total
+    pruner_macs: float = 0.0  # MACs of the pruner in this call (whole batch)
 
     def decisions(self) -> torch.Tensor:
         """[steps, batch, num_branches] int8."""
@@ -82,15 +84,25 @@ class Summary:
         realised += float(((site_active > 0).to(torch.float64) * shared).sum()) * B
         return dense, realised
 
+    def timing(self, calls: Optional[Sequence[CallRecord]] = None) -> dict[str, float]:
+        """Median seconds per call of each recorded phase (encoder, pruner, wait, decoder, total)
+        over ``calls`` (default: the calls that were not dense first calls of an episode)."""
+        calls = [c for c in self.calls if not c.dense] if calls is None else calls
+        keys = sorted({k for c in calls for k in c.timing})
+        return {k: float(torch.tensor([c.timing[k] for c in calls if k in c.timing]).median()) for k in keys}
+
     def to_dict(self) -> dict:
         last = self.calls[-1] if self.calls else None
+        sparse_calls = [c for c in self.calls if not c.dense]
         out = {
             "plan": self.plan,
             "directions": list(self.directions),
             "num_branches": len(self.branch_names),
             "calls": len(self.calls),
             "sparsity_all_calls": self.sparsity(),
+            "sparsity_non_dense_calls": self.sparsity(sparse_calls),
             "decision_counts": self.counts(),
+            "timing_median_s": self.timing(),
         }
         if last is not None:
             dense, realised = self.macs(last)
@@ -103,6 +115,8 @@ class Summary:
                     "rollout_fallbacks": last.fallbacks,
                     "macs_dense": dense,
                     "macs_realised": realised,
+                    "macs_pruner": last.pruner_macs,
+                    "macs_realised_with_pruner": realised + last.pruner_macs,
                 }
             )
         return out
@@ -140,6 +154,15 @@ class Summary:
                 f"  MACs last call: dense {dense / 1e9:.3f} G, realised {realised / 1e9:.3f} G "
                 f"({dense / max(realised, 1):.2f}x fewer)"
             )
+            if last.pruner_macs:
+                total_macs = realised + last.pruner_macs
+                lines.append(f"  with the pruner ({last.pruner_macs / 1e9:.3f} G): {total_macs / 1e9:.3f} G "
+                             f"({dense / max(total_macs, 1):.2f}x fewer)")
+        timing = self.timing()
+        if timing:
+            lines.append("  median time per call (ms, non-dense calls; pruner overlaps step 0, wait = "
+                         "time step 1 waited for it): "
+                         + ", ".join(f"{k} {v * 1e3:.2f}" for k, v in timing.items()))
         d = last.decisions()
         frac = (d == COMPUTE).float().mean((0, 1))
         width = max(len(n) for n in self.branch_names)

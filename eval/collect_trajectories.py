@@ -1,0 +1,84 @@
+"""Dense-policy trajectories for pruner training (spec §4 "use_target_action", §10 item 1).
+
+    python eval/collect_trajectories.py --task lift --checkpoint checkpoints/lift_dpt \
+        --episodes 112 --seed 200000 --out data/trajectories/lift.pt
+
+Runs the dense policy in the env (waves of ``--n-envs`` batched envs) and stores, per policy call,
+the exact obs window fed to ``predict_action`` [To, obs_dim], the dense ``action_pred`` [H, Da] (the
+training target), the executed chunk [Ta, Da] and the noise seed of that call (so a paired-noise
+trainer can replay the same noise). Episodes keep their success flag; the trainer uses the
+successful ones. Seeds 200000.. are disjoint from demonstrations (0..) and test episodes (100000..).
+The file is rewritten atomically after every wave; ``--resume`` continues after an interruption.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import provenance  # noqa: E402
+from robot import run_wave  # noqa: E402
+
+from tts.adapters.dp_policy import load_policy  # noqa: E402
+from tts.adapters.robosuite_tasks import TASKS, make_env  # noqa: E402
+from tts.io import atomic_path  # noqa: E402
+
+
+def save(path: Path, episodes: list[dict], meta: dict) -> None:
+    with atomic_path(path) as tmp:
+        torch.save({"format": "tts-trajectories-v1", "meta": meta, "episodes": episodes}, tmp)
+
+
+def load_trajectories(path: Path, successful_only: bool = True) -> tuple[list[dict], dict]:
+    """Episodes (dicts of numpy arrays + seed/success) and the collection metadata."""
+    doc = torch.load(path, map_location="cpu", weights_only=False)
+    if doc.get("format") != "tts-trajectories-v1":
+        raise ValueError(f"{path} is not a tts trajectory file")
+    eps = [e for e in doc["episodes"] if e["success"] or not successful_only]
+    return eps, doc["meta"]
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--task", choices=sorted(TASKS), required=True)
+    ap.add_argument("--checkpoint", type=Path, required=True)
+    ap.add_argument("--episodes", type=int, default=112)
+    ap.add_argument("--seed", type=int, default=200000)
+    ap.add_argument("--n-envs", type=int, default=16)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--threads", type=int, default=None)
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    seeds = list(range(args.seed, args.seed + args.episodes))
+    episodes: list[dict] = []
+    if args.resume and args.out.exists():
+        episodes, _ = load_trajectories(args.out, successful_only=False)
+        print(f"resuming: {len(episodes)} episodes already in {args.out}")
+    done = {e["seed"] for e in episodes}
+    policy = load_policy(args.checkpoint)
+    meta = provenance(seeds=seeds)
+    meta.update(task=args.task, checkpoint=str(args.checkpoint), policy_config=policy.cfg.__dict__)
+    envs = [make_env(args.task) for _ in range(min(args.n_envs, len(seeds)))]
+    todo = [s for s in seeds if s not in done]
+    with tqdm(total=len(seeds), initial=len(done), desc=f"trajectories {args.task}") as bar:
+        for w in range(0, len(todo), len(envs)):
+            wave = todo[w:w + len(envs)]
+            outcomes, _ = run_wave(policy, envs, wave, args.task, None, record=True)
+            for o in outcomes:
+                episodes.append({"seed": o["seed"], "success": o["success"], **o["trajectory"]})
+            save(args.out, episodes, meta)
+            bar.update(len(wave))
+            bar.set_postfix(success=f"{np.mean([e['success'] for e in episodes]):.2f}")
+    ok = sum(e["success"] for e in episodes)
+    print(f"{args.task}: {ok}/{len(episodes)} successful dense episodes; wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

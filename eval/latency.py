@@ -1,0 +1,131 @@
+"""Policy-call latency of an accelerated policy against dense, measured in one process.
+
+    python eval/latency.py --task lift --checkpoint checkpoints/lift_dpt --pruner checkpoints/lift_pruner \
+        --trajectories data/trajectories/lift.pt --batch 1 28 [--sparsity 0.93]
+
+Protocol (spec §6, made robust): real observation windows from recorded dense trajectories. Per
+trial and batch size B, take B episodes; ``reset()``; frame 0 (the dense call that fills the rollout
+cache, untimed); then time the calls on frames 1..``--frames``. Dense is the untouched policy (its own
+fast loop: batched condition encoder, precomputed DDPM coefficients), timed in the same trials,
+alternating order. Reported per batch size: median latency of a policy call, speed-up = dense median
+/ accelerated median, calls/s (= 1 / latency) and actions/s per env (= n_action_steps / latency),
+realised sparsity, MACs (dense, realised, pruner, realised + pruner) and the median timing breakdown
+of the accelerated call (encoder, pruner, wait, decoder, total) from ``summary()``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from collect_trajectories import load_trajectories  # noqa: E402
+from common import REPO, provenance, write_json  # noqa: E402
+from robot import accelerate, method_label  # noqa: E402
+from train_pruner import obs_dict  # noqa: E402
+
+from tts.adapters.dp_policy import load_policy  # noqa: E402
+
+
+def time_calls(policy, frames: list[dict], gen_seed: int) -> list[float]:
+    """reset, untimed frame 0, then the latency of each later frame."""
+    policy.reset()
+    out = []
+    for r, obs in enumerate(frames):
+        g = torch.Generator().manual_seed(gen_seed + r)
+        t0 = time.perf_counter()
+        policy.predict_action(obs, generator=g)
+        if r:
+            out.append(time.perf_counter() - t0)
+    return out
+
+
+def batch_frames(policy, episodes: list[dict], n_frames: int) -> list[dict]:
+    """Frames 0..n_frames of a batch of episodes (an episode shorter than that repeats its last frame)."""
+    frames = []
+    for r in range(n_frames + 1):
+        window = torch.as_tensor(np.stack([e["obs"][min(r, len(e["obs"]) - 1)] for e in episodes]))
+        frames.append(obs_dict(policy, window))
+    return frames
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--task", required=True)
+    ap.add_argument("--checkpoint", type=Path, required=True)
+    ap.add_argument("--trajectories", type=Path, required=True, help="observation windows (eval/collect_trajectories.py)")
+    ap.add_argument("--method", choices=["static", "tts"], default="tts")
+    ap.add_argument("--plan", default="uniform:0.93:timestep", help="for --method static")
+    ap.add_argument("--pruner", type=Path, default=None)
+    ap.add_argument("--sparsity", type=float, default=None, help="tts exact-budget mode")
+    ap.add_argument("--batch", type=int, nargs="+", default=[1, 28])
+    ap.add_argument("--trials", type=int, default=5)
+    ap.add_argument("--frames", type=int, default=4, help="timed calls per trial (after the dense frame 0)")
+    ap.add_argument("--first-episode", type=int, default=96, help="episodes used (default: past the pruner's training set)")
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    label = method_label(args)
+    out_path = args.out or REPO / "results" / "robot" / f"latency_{args.task}_{label}.json"
+    episodes, _ = load_trajectories(args.trajectories)
+    pool = episodes[args.first_episode:] or episodes
+    dense = load_policy(args.checkpoint)
+    fast = load_policy(args.checkpoint)
+    acc = accelerate(fast, args)
+    rows = []
+    for B in args.batch:
+        eps = [pool[i % len(pool)] for i in range(B)]
+        frames = batch_frames(dense, eps, args.frames)
+        for pol in (dense, fast):  # warm-up (allocator, profiling of the first shape)
+            time_calls(pol, frames[:2], 0)
+        acc.calls.clear()
+        t_dense, t_fast = [], []
+        for trial in tqdm(range(args.trials), desc=f"latency batch {B}"):
+            order = (dense, fast) if trial % 2 == 0 else (fast, dense)
+            for pol in order:
+                (t_dense if pol is dense else t_fast).extend(time_calls(pol, frames, 1000 * trial))
+        s = acc.summary()
+        sparse_calls = [c for c in s.calls if not c.dense]
+        last = sparse_calls[-1]
+        macs_dense, macs_real = s.macs(last)
+        md, mf = float(np.median(t_dense)), float(np.median(t_fast))
+        n_act = dense.cfg.n_action_steps
+        rows.append({
+            "batch": B,
+            "dense_ms": {"median": md * 1e3, "p90": float(np.percentile(t_dense, 90)) * 1e3, "calls": len(t_dense)},
+            "accelerated_ms": {"median": mf * 1e3, "p90": float(np.percentile(t_fast, 90)) * 1e3, "calls": len(t_fast)},
+            "speedup": md / mf,
+            "calls_per_s": {"dense": 1 / md, "accelerated": 1 / mf},
+            "actions_per_s_per_env": {"dense": n_act / md, "accelerated": n_act / mf},
+            "sparsity": s.sparsity(sparse_calls),
+            "macs_per_call": {"dense": macs_dense, "realised": macs_real, "pruner": last.pruner_macs,
+                              "realised_with_pruner": macs_real + last.pruner_macs},
+            "timing_median_ms": {k: v * 1e3 for k, v in s.timing(sparse_calls).items()},
+        })
+        r = rows[-1]
+        print(f"batch {B}: dense {md * 1e3:.1f} ms, {label} {mf * 1e3:.1f} ms -> {r['speedup']:.2f}x; "
+              f"sparsity {r['sparsity']:.3f}; MACs {macs_dense / max(macs_real + last.pruner_macs, 1):.2f}x fewer "
+              f"(pruner included); breakdown {', '.join(f'{k} {v:.1f}' for k, v in r['timing_median_ms'].items())}")
+    res = {
+        "provenance": provenance(seeds={"noise": "1000 * trial + frame"}),
+        "task": args.task, "checkpoint": str(args.checkpoint), "method": label,
+        "trajectories": str(args.trajectories), "episodes_from": args.first_episode,
+        "protocol": "per trial: reset, untimed dense frame 0, timed frames 1..frames; dense = untouched policy, "
+                    "same trials, alternating order; medians",
+        "hz_definitions": "calls_per_s = 1 / median call latency; actions_per_s_per_env = n_action_steps / median latency",
+        "rows": rows,
+    }
+    write_json(out_path, res)
+    print(f"wrote {out_path}")
+    return res
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,77 @@
+"""BAC-style static schedule for a Diffusion Policy, searched offline from activation similarity.
+
+    python eval/search_static.py --checkpoint checkpoints/lift_dpt --trajectories data/trajectories/lift.pt \
+        --sparsity 0.93 --out results/schedules/lift_bac_0.93.json
+
+Runs dense calls on ``--calls`` recorded observation windows of the *training* trajectories (the
+first ``--episodes``; never the test seeds), measures per branch how much its output changes between
+denoising steps (:func:`tts.static_search.reuse_errors`) and picks per branch the compute steps that
+hide the least change (:func:`tts.static_search.search_schedule`). Writes the decision grid (one
+``C``/``T`` string per step), usable as ``eval/robot.py --method static --plan file:PATH``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from collect_trajectories import load_trajectories  # noqa: E402
+from common import provenance, write_json  # noqa: E402
+from train_pruner import obs_dict  # noqa: E402
+
+from tts.adapters.dp_policy import load_policy  # noqa: E402
+from tts.static_search import reuse_errors, search_schedule  # noqa: E402
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", type=Path, required=True)
+    ap.add_argument("--trajectories", type=Path, required=True)
+    ap.add_argument("--sparsity", type=float, nargs="+", default=[0.93])
+    ap.add_argument("--episodes", type=int, default=32, help="calibration episodes (from the start of the file)")
+    ap.add_argument("--calls", type=int, default=64, help="calibration policy calls (spread over the episodes)")
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, required=True, help="output JSON; with several sparsities, one file each "
+                    "named <out stem>_<sparsity>.json")
+    ap.add_argument("--threads", type=int, default=None)
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    episodes, _ = load_trajectories(args.trajectories)
+    windows = np.concatenate([e["obs"] for e in episodes[:args.episodes]])
+    rng = np.random.default_rng(args.seed)
+    pick = rng.choice(len(windows), size=min(args.calls, len(windows)), replace=False)
+    policy = load_policy(args.checkpoint)
+
+    def sample():
+        for s in range(0, len(pick), args.batch):
+            obs = obs_dict(policy, torch.as_tensor(windows[pick[s:s + args.batch]]))
+            policy.predict_action(obs, generator=torch.Generator().manual_seed(args.seed + s))
+
+    errors = reuse_errors(policy, sample)
+    written = {}
+    for rho in args.sparsity:
+        grid = search_schedule(errors, rho)
+        out = args.out if len(args.sparsity) == 1 else args.out.with_name(f"{args.out.stem}_{rho:g}.json")
+        doc = {
+            "provenance": provenance(seeds={"calibration": args.seed}),
+            "method": "BAC-style per-branch DP on activation similarity (timestep reuse)",
+            "checkpoint": str(args.checkpoint), "trajectories": str(args.trajectories),
+            "calibration_episodes": args.episodes, "calibration_calls": int(len(pick)),
+            "sparsity": rho, "realised_sparsity": float((grid != 0).float().mean()),
+            "directions": ["timestep"],
+            "grid": ["".join("CFTR"[c] for c in row.tolist()) for row in grid],
+        }
+        write_json(out, doc)
+        written[rho] = str(out)
+        print(f"sparsity {rho}: computes per branch {int((grid == 0).sum(0)[0])}/{grid.shape[0]}; wrote {out}")
+    return written
+
+
+if __name__ == "__main__":
+    main()

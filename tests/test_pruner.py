@@ -1,0 +1,300 @@
+"""Learned pruner: gate scheduler, lockstep trajectory batching, pruner network, engine integration."""
+import numpy as np
+import pytest
+import torch
+
+import tts
+from test_robot_pipeline import obs_batch, small_policy
+from tts.gates import argmax_codes, budget_codes, reuse_fraction, ste_gates
+from tts.plans import COMPUTE, FORWARD, ROLLOUT, TIMESTEP
+from tts.pruner import Pruner, PrunerConfig, PrunerPlan, load_pruner, pruner_loss, save_pruner
+from tts.trajectories import episode_groups, lockstep_frames, split_episodes
+
+
+# ---------------------------------------------------------------- gate scheduler
+def test_ste_gates_forward_one_hot_step0_forced_and_identity_gradient():
+    logits = torch.randn(3, 5, 6, 4, requires_grad=True)
+    hard, p = ste_gates(logits)
+    assert torch.equal(hard.detach().sum(-1), torch.ones(3, 5, 6))
+    assert set(hard.detach().unique().tolist()) <= {0.0, 1.0}
+    assert torch.equal(hard.detach()[:, 0, :, 0], torch.ones(3, 6))  # step 0: compute
+    torch.testing.assert_close(hard.detach()[:, 1:], torch.nn.functional.one_hot(logits[:, 1:].argmax(-1), 4).float())
+    # straight-through: d hard / d p = I, so d(sum w*hard)/d logits = d(sum w*p)/d logits
+    w = torch.randn_like(hard)
+    (g_hard,) = torch.autograd.grad((w * hard).sum(), logits, retain_graph=True)
+    (g_soft,) = torch.autograd.grad((w * p).sum(), logits)
+    torch.testing.assert_close(g_hard, g_soft)
+    assert torch.equal(g_hard[:, 0], torch.zeros_like(g_hard[:, 0]))  # no gradient into step 0
+    assert g_hard[:, 1:].abs().sum() > 0
+
+
+def test_reuse_fraction_counts_non_compute():
+    codes = torch.tensor([[[0, 1], [2, 0]], [[0, 0], [0, 0]]])  # [B=2, K=2, nb=2] option indices
+    gates = torch.nn.functional.one_hot(codes, 3).float()
+    torch.testing.assert_close(reuse_fraction(gates), torch.tensor([0.5, 0.0]))
+
+
+def test_argmax_codes_maps_options_to_direction_codes_and_forces_step0():
+    logits = torch.zeros(2, 3, 4, 2)
+    logits[..., 1] = 1.0  # option 1 (the only direction) wins everywhere
+    out = argmax_codes(logits, [COMPUTE, TIMESTEP])
+    assert out.dtype == torch.int8
+    assert (out[:, 0] == COMPUTE).all() and (out[:, 1:] == TIMESTEP).all()
+
+
+@pytest.mark.parametrize("sparsity", [0.0, 0.5, 0.9, 0.95])
+def test_budget_codes_exact_count_ranked_by_compute_probability(sparsity):
+    B, K, nb = 3, 10, 6
+    logits = torch.randn(B, K, nb, 4, generator=torch.Generator().manual_seed(0))
+    codes = [COMPUTE, FORWARD, TIMESTEP, ROLLOUT]
+    out = budget_codes(logits, codes, sparsity)
+    keep = max(nb, round((1 - sparsity) * K * nb))
+    assert ((out == COMPUTE).sum((1, 2)) == keep).all()
+    assert (out[:, 0] == COMPUTE).all()
+    p = logits.softmax(-1)[..., 0]
+    for s in range(B):  # every computed (k>0) branch is at least as likely to compute as every reused one
+        comp = p[s, 1:][out[s, 1:] == COMPUTE]
+        reuse = p[s, 1:][out[s, 1:] != COMPUTE]
+        if len(comp) and len(reuse):
+            assert comp.min() >= reuse.max()
+    # reused decisions take their best reuse direction
+    best = torch.tensor(codes)[logits[..., 1:].argmax(-1) + 1].to(torch.int8)
+    mask = out != COMPUTE
+    assert torch.equal(out[mask], best[mask])
+
+
+def test_budget_codes_rejects_bad_sparsity_and_compute_only_head():
+    with pytest.raises(ValueError, match=r"\[0, 1\)"):
+        budget_codes(torch.randn(1, 4, 3, 2), [0, 2], 1.0)
+    with pytest.raises(ValueError, match="reuse direction"):
+        budget_codes(torch.randn(1, 4, 3, 1), [0], 0.5)
+
+
+# ---------------------------------------------------------------- lockstep trajectory batching
+def _episode(n, tag):
+    return {"obs": np.full((n, 2, 3), tag, np.float32), "action_pred": np.arange(n, dtype=np.float32)[:, None, None]
+            * np.ones((n, 4, 2), np.float32), "noise_seed": np.arange(n) + 100 * tag}
+
+
+def test_lockstep_frames_pad_short_episodes_with_zero_weight():
+    group = [_episode(3, 1), _episode(5, 2)]
+    frames = list(lockstep_frames(group, ("obs", "action_pred", "noise_seed")))
+    assert [f.index for f in frames] == [0, 1, 2, 3, 4]
+    assert [f.first for f in frames] == [True, False, False, False, False]
+    assert frames[2].weight.tolist() == [1.0, 1.0] and frames[3].weight.tolist() == [0.0, 1.0]
+    assert frames[4].data["obs"].shape == (2, 2, 3)
+    # the short episode repeats its last frame; the long one advances
+    assert frames[4].data["noise_seed"].tolist() == [102, 204]
+    assert frames[4].data["action_pred"][:, 0, 0].tolist() == [2.0, 4.0]
+
+
+def test_lockstep_frames_rejects_ragged_episode():
+    bad = _episode(3, 1)
+    bad["noise_seed"] = bad["noise_seed"][:2]
+    with pytest.raises(ValueError, match="differ in length"):
+        list(lockstep_frames([bad], ("obs", "noise_seed")))
+
+
+def test_episode_groups_and_split():
+    eps = [_episode(2, i) for i in range(7)]
+    groups = episode_groups(eps, 3, np.random.default_rng(0))
+    assert [len(g) for g in groups] == [3, 3, 1]
+    assert sorted(int(e["obs"][0, 0, 0]) for g in groups for e in g) == list(range(7))
+    assert episode_groups(eps, 3, None)[0][0] is eps[0]
+    train, val = split_episodes(eps, 4, 2)
+    assert len(train) == 4 and len(val) == 2 and val[0] is eps[4]
+    with pytest.raises(ValueError, match="only 7 successful"):
+        split_episodes(eps, 6, 2)
+    with pytest.raises(ValueError, match="at least one"):
+        split_episodes(eps, 0, 2)
+
+
+# ---------------------------------------------------------------- pruner network
+def _pruner(directions=("forward", "timestep", "rollout"), nb=6, dim=32, dropout=0.0, seed=0):
+    torch.manual_seed(seed)
+    return Pruner(PrunerConfig(memory_dim=dim, num_branches=nb, directions=directions, hidden=16, heads=2, ffn=32,
+                               dropout=dropout))
+
+
+def test_pruner_shapes_query_cache_and_errors():
+    pr = _pruner()
+    mem = torch.randn(2, 7, 3, 32)
+    train_out = pr.train()(mem)
+    assert train_out.shape == (2, 7, 6, 4)
+    pr.eval()
+    with torch.no_grad():
+        first = pr(mem)
+        assert pr._query_cache is not None  # input-independent query self-attention cached
+        torch.testing.assert_close(pr(mem), first)
+    torch.testing.assert_close(first, train_out.detach())  # dropout 0: same function either way
+    assert _pruner(("timestep",))(mem).shape == (2, 7, 6, 2)
+    with pytest.raises(ValueError, match="memory"):
+        pr(torch.randn(2, 7, 3, 16))
+    with pytest.raises(ValueError, match="unknown direction"):
+        PrunerConfig(memory_dim=8, num_branches=3, directions=("sideways",))
+    with pytest.raises(ValueError, match="at least one"):
+        PrunerConfig(memory_dim=8, num_branches=3, directions=())
+
+
+def test_pruner_macs_counted_and_small_next_to_the_policy():
+    pol = small_policy(num_steps=10)
+    pr = _pruner(nb=6, dim=32)
+    K = pol.cfg.num_inference_steps
+    m = pr.macs(K, 3)
+    h, q, tc = 16, 6, 3
+    # analytic lower bound: memory projection + query cross-attention + FFN + head, per step
+    per_step = tc * 32 * h + q * h * h * 2 + tc * h * h * 2 + q * h * 32 * 2 + q * h * 4
+    assert per_step * K <= m <= 2 * per_step * K
+    acc = tts.accelerate(pol, pruner=pr)
+    pol.predict_action(obs_batch(1))
+    dense_macs, _ = acc.summary().macs(acc.summary().calls[-1])
+    acc.remove()
+    assert m < 0.2 * dense_macs
+
+
+def test_pruner_save_load_round_trip_and_mismatch(tmp_path):
+    pr = _pruner(("timestep", "rollout"))
+    save_pruner(pr, tmp_path / "p", metadata={"note": "x"})
+    back = load_pruner(tmp_path / "p")
+    assert back.config.directions == ("timestep", "rollout") and back.metadata == {"note": "x"}
+    mem = torch.randn(1, 4, 3, 32)
+    with torch.no_grad():
+        torch.testing.assert_close(back(mem), pr.eval()(mem))
+    pol = small_policy()  # 2 layers x 3 branches = 6
+    with pytest.raises(ValueError, match="does not belong"):
+        tts.accelerate(pol, pruner=_pruner(nb=9))
+    with pytest.raises(ValueError, match="not in directions"):
+        tts.accelerate(pol, ("timestep",), pruner=pr)
+    with pytest.raises(ValueError, match="either plan= or pruner="):
+        tts.accelerate(pol, pruner=pr, plan=tts.plans.dense())
+    with pytest.raises(FileNotFoundError, match="pruner config"):
+        load_pruner(tmp_path / "missing")
+
+
+# ---------------------------------------------------------------- engine integration
+def test_pruner_decisions_follow_its_argmax_on_the_condition_memory():
+    pol = small_policy(num_steps=10)
+    pr = _pruner(seed=3)
+    with torch.no_grad():
+        pr.head.bias.copy_(torch.tensor([0.0, 0.5, 0.5, 0.5]))  # mix of decisions
+    acc = tts.accelerate(pol, pruner=pr, parallel=False)
+    obs = obs_batch(2)
+    pol.predict_action(obs)  # first call of the episode: dense
+    pol.predict_action(obs)
+    s = acc.summary()
+    assert s.calls[0].dense and not s.calls[1].dense
+    cond = pol.obs_normalizer.normalize(pol.obs_vector(obs))[:, -2:]
+    with torch.no_grad():
+        logits = pr(pol.model.condition_memory(pol._fast.timesteps, cond))
+    expect = argmax_codes(logits, pr.config.codes)  # [B, K, nb]
+    assert torch.equal(s.calls[1].decisions(), expect.transpose(0, 1))
+    assert 0 < s.sparsity_of(s.calls[1]) < 1
+    t = s.calls[1].timing
+    assert {"encoder", "pruner", "wait", "decoder", "total"} <= set(t)
+    assert s.calls[1].pruner_macs == pytest.approx(pr.macs(10, 3) * 2)
+    assert s.calls[0].pruner_macs == 0  # dense first call: the pruner's decisions are not needed
+    acc.remove()
+
+
+def test_parallel_pruner_gives_the_same_actions_as_sequential():
+    pol = small_policy(num_steps=10)
+    pr = _pruner(seed=4)
+    with torch.no_grad():
+        pr.head.bias.copy_(torch.tensor([0.0, 0.5, 0.5, 0.5]))
+    outs = []
+    for parallel in (False, True):
+        with tts.accelerate(pol, pruner=pr, parallel=parallel):
+            for i in range(3):
+                out = pol.predict_action(obs_batch(3, i), torch.Generator().manual_seed(i))["action_pred"]
+        outs.append(out)
+    assert torch.equal(outs[0], outs[1])
+
+
+def test_budget_mode_realises_the_requested_sparsity():
+    pol = small_policy(num_steps=10)
+    pr = _pruner(seed=5)
+    for rho in (0.5, 0.8):
+        with tts.accelerate(pol, pruner=pr, sparsity=rho) as acc:
+            pol.predict_action(obs_batch(2))
+            pol.predict_action(obs_batch(2, 1))
+            assert acc.summary().sparsity_of(acc.summary().calls[-1]) == pytest.approx(rho)
+    with pytest.raises(ValueError, match=r"\[0, 1\)"):
+        tts.accelerate(pol, pruner=pr, sparsity=1.2)
+
+
+def test_ste_training_path_equals_hard_path_and_trains_only_the_pruner():
+    """Mixed straight-through path (every branch computed, outputs mixed with one-hot gates) gives
+    the same actions as real skipping with the same decisions; gradients reach the pruner only."""
+    pol = small_policy(num_steps=10).requires_grad_(False)
+    pr = _pruner(seed=6)
+    with torch.no_grad():
+        pr.head.bias.copy_(torch.tensor([0.0, 0.5, 0.5, 0.5]))
+    obs = [obs_batch(3, i) for i in range(3)]
+    gen = lambda i: [torch.Generator().manual_seed(10 * i + j) for j in range(3)]  # noqa: E731
+    with tts.accelerate(pol, pruner=pr, parallel=False):
+        hard = [pol.predict_action(o, gen(i))["action_pred"] for i, o in enumerate(obs)]
+    plan = PrunerPlan(pr, mode="ste")
+    with tts.accelerate(pol, plan=plan) as acc:
+        for i, o in enumerate(obs):
+            soft = pol.predict_action(o, gen(i), enable_grad=True)["action_pred"]
+            torch.testing.assert_close(soft.detach(), hard[i], rtol=1e-4, atol=1e-5)
+        s = acc.summary()
+    assert s.sparsity_of(s.calls[-1]) > 0
+    loss = pruner_loss(soft, hard[-1] + 0.1, plan.gates, 0.9)
+    loss["loss"].backward()
+    assert all(p.grad is None for p in pol.parameters())
+    grads = [p.grad for p in pr.parameters() if p.grad is not None]
+    assert grads and sum(float(g.abs().sum()) for g in grads) > 0
+
+
+def test_pruner_loss_weights_padded_samples_out():
+    pred, target = torch.zeros(2, 4, 3), torch.ones(2, 4, 3)
+    target[1] = 5.0
+    gates = torch.nn.functional.one_hot(torch.zeros(2, 3, 4, dtype=torch.long), 4).float()
+    out = pruner_loss(pred, target, gates, 0.5, lam=2.0, weight=torch.tensor([1.0, 0.0]))
+    assert float(out["l1"]) == pytest.approx(1.0)
+    assert float(out["sparsity_loss"]) == pytest.approx(0.5)
+    assert float(out["loss"]) == pytest.approx(2.0)
+
+
+# ---------------------------------------------------------------- end to end on a toy policy
+def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
+    """eval/train_pruner.py on trajectories of a tiny policy: the checkpoint is written, the pruner
+    learns to reuse (its sparsity moves from ~0 toward the target) and serves test-time decisions."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
+    import train_pruner
+    from collect_trajectories import save
+    from tts.adapters.dp_policy import save_policy
+
+    pol = small_policy(num_steps=6)
+    save_policy(pol, tmp_path / "policy", dtype=torch.float32)
+    episodes = []
+    for e in range(6):
+        n = 3 + e % 2
+        obs = np.stack([np.concatenate([obs_batch(1, 10 * e + r)[k][0] for k in obs_batch(1)], -1) for r in range(n)])
+        preds = [pol.predict_action(train_pruner.obs_dict(pol, torch.as_tensor(o[None])),
+                                    torch.Generator().manual_seed(100 * e + r))["action_pred"][0].numpy()
+                 for r, o in enumerate(obs)]
+        episodes.append({"seed": e, "success": True, "obs": obs, "action_pred": np.stack(preds),
+                         "action": np.stack(preds)[:, 1:9], "noise_seed": 100 * e + np.arange(n)})
+    save(tmp_path / "traj.pt", episodes, {"command": "test"})
+    out = tmp_path / "pruner"
+    args = ["--trajectories", str(tmp_path / "traj.pt"), "--checkpoint", str(tmp_path / "policy"), "--out", str(out),
+            "--sparsity", "0.6", "--epochs", "3", "--batch", "2", "--n-train", "4", "--n-val", "2", "--lr", "0.02",
+            "--hidden", "16", "--paired", "--run-dir", str(tmp_path / "run")]
+    train_pruner.main(args)
+    pr = load_pruner(out)
+    hist = pr.metadata["history"]
+    assert len(hist) == 3 and pr.metadata["n_train_episodes"] == 4
+    assert pr.metadata["best_epoch"]["val_sparsity"] > 0.2  # started near 0 (head biased to compute)
+    assert pr.metadata["pruner_macs_per_call"] > 0
+    with tts.accelerate(pol, pruner=pr) as acc:
+        pol.predict_action(obs_batch(2))
+        pol.predict_action(obs_batch(2, 1))
+        assert acc.summary().sparsity_of(acc.summary().calls[-1]) > 0
+    # resuming a finished run trains no further epoch and keeps the history
+    train_pruner.main(args + ["--resume"])
+    assert len(load_pruner(out).metadata["history"]) == 3

@@ -1,0 +1,366 @@
+"""The learned pruner (spec §3) and the plan that runs it before each sampling call (spec §6).
+
+The pruner reads the denoiser's own condition memory for all K steps, [B, K, Tc, D] (for DP-T the
+condition encoder's output, computed in one batched call: the pruner shares it, nothing is encoded
+twice), and predicts logits [B, K, nb, O] over {compute} + the enabled directions for every branch
+at every step. Architecture: Linear(D -> h) on the memory; fixed sinusoidal (or learned) branch
+queries; one pre-norm decoder layer (query self-attention, cross-attention to the memory, ReLU FFN);
+Linear(h -> O). The query self-attention does not depend on the input, so in eval mode it is
+computed once and cached. No flip of the K axis (spec §3): the gates of step k come from memory k.
+
+:class:`PrunerPlan` feeds the engine. ``mode``: ``"argmax"`` (the paper), ``"budget"`` (exact
+sparsity per sample, see :mod:`tts.gates`) or ``"ste"`` (training: differentiable gates, every
+branch computed and mixed). With ``parallel=True`` the pruner runs on a worker thread (CPU) or a side
+CUDA stream (GPU) while step 0, which is always dense, runs; step 1 waits for it.
+"""
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Optional, Sequence, Union
+
+import torch
+import torch.nn as nn
+
+from .gates import argmax_codes, budget_codes, ste_gates
+from .io import atomic_path
+from .plans import COMPUTE, DIRECTIONS, Plan, check_directions, check_sparsity
+
+__all__ = ["PrunerConfig", "Pruner", "StaticRouter", "build_pruner", "PrunerPlan", "pruner_loss", "save_pruner",
+           "load_pruner"]
+
+
+@dataclass
+class PrunerConfig:
+    memory_dim: int  # D of the condition memory
+    num_branches: int  # nb: prunable branches per denoising step
+    directions: tuple[str, ...] = ("forward", "timestep", "rollout")
+    hidden: int = 64
+    heads: int = 4
+    ffn: int = 128
+    dropout: float = 0.1
+    queries: str = "sinusoidal"  # or "learned"
+    branch_names: list[str] = field(default_factory=list)  # of the model it was trained on
+    kind: str = "transformer"  # or "static": one learned decision per (step, branch), see StaticRouter
+    steps: int = 0  # K, for kind="static"
+
+    def __post_init__(self) -> None:
+        self.directions = check_directions(self.directions)
+        if not self.directions:
+            raise ValueError("a pruner needs at least one reuse direction")
+        if self.queries not in ("sinusoidal", "learned"):
+            raise ValueError(f"queries must be 'sinusoidal' or 'learned', got {self.queries!r}")
+        if self.kind not in ("transformer", "static"):
+            raise ValueError(f"kind must be 'transformer' or 'static', got {self.kind!r}")
+        if self.kind == "static" and self.steps < 1:
+            raise ValueError("a static router needs steps= (the number of denoising steps K)")
+
+    @property
+    def codes(self) -> list[int]:
+        """Decision code of each head option: compute, then the directions in canonical order."""
+        return [COMPUTE] + [DIRECTIONS[d] for d in self.directions]
+
+
+def _sinusoidal(n: int, dim: int) -> torch.Tensor:
+    pos = torch.arange(n, dtype=torch.float32)[:, None]
+    freq = torch.exp(-math.log(10000.0) * torch.arange(0, dim, 2, dtype=torch.float32) / dim)
+    out = torch.zeros(n, dim)
+    out[:, 0::2] = torch.sin(pos * freq)
+    out[:, 1::2] = torch.cos(pos * freq[: dim // 2])
+    return out
+
+
+class _QueryDecoderLayer(nn.Module):
+    """Pre-norm decoder layer, split so the input-independent query self-attention can be cached."""
+
+    def __init__(self, h: int, heads: int, ffn: int, dropout: float):
+        super().__init__()
+        self.norm1, self.norm2, self.norm3 = nn.LayerNorm(h), nn.LayerNorm(h), nn.LayerNorm(h)
+        self.self_attn = nn.MultiheadAttention(h, heads, dropout=dropout, batch_first=True)
+        self.cross_attn = nn.MultiheadAttention(h, heads, dropout=dropout, batch_first=True)
+        self.ff = nn.Sequential(nn.Linear(h, ffn), nn.ReLU(), nn.Dropout(dropout), nn.Linear(ffn, h))
+        self.drop = nn.Dropout(dropout)
+
+    def queries(self, q: torch.Tensor) -> torch.Tensor:
+        x = self.norm1(q)
+        return q + self.drop(self.self_attn(x, x, x, need_weights=False)[0])
+
+    def forward(self, x: torch.Tensor, memory: torch.Tensor) -> torch.Tensor:
+        x = x + self.drop(self.cross_attn(self.norm2(x), memory, memory, need_weights=False)[0])
+        return x + self.drop(self.ff(self.norm3(x)))
+
+
+class Pruner(nn.Module):
+    def __init__(self, config: PrunerConfig):
+        super().__init__()
+        self.config = config
+        c = config
+        self.memory_proj = nn.Linear(c.memory_dim, c.hidden)
+        if c.queries == "learned":
+            self.block_queries = nn.Parameter(_sinusoidal(c.num_branches, c.hidden))
+        else:
+            self.register_buffer("block_queries", _sinusoidal(c.num_branches, c.hidden), persistent=False)
+        self.layer = _QueryDecoderLayer(c.hidden, c.heads, c.ffn, c.dropout)
+        self.head = nn.Linear(c.hidden, len(c.codes))
+        for lin in (self.memory_proj, self.head):
+            nn.init.xavier_uniform_(lin.weight)
+            nn.init.zeros_(lin.bias)
+        with torch.no_grad():  # start near "compute everything" so early training is stable
+            self.head.bias[0] = 2.0
+        self._query_cache: Optional[torch.Tensor] = None
+
+    def train(self, mode: bool = True) -> "Pruner":
+        self._query_cache = None
+        return super().train(mode)
+
+    def _query_state(self) -> torch.Tensor:
+        if self.training or torch.is_grad_enabled():
+            return self.layer.queries(self.block_queries[None])[0]
+        if self._query_cache is None:
+            self._query_cache = self.layer.queries(self.block_queries[None])[0]
+        return self._query_cache
+
+    def forward(self, memory: torch.Tensor) -> torch.Tensor:
+        """memory [B, K, Tc, D] -> logits [B, K, nb, O]."""
+        if memory.dim() != 4 or memory.shape[-1] != self.config.memory_dim:
+            raise ValueError(
+                f"pruner expects memory [B, K, Tc, {self.config.memory_dim}], got {tuple(memory.shape)}"
+            )
+        B, K, Tc, D = memory.shape
+        mem = self.memory_proj(memory.reshape(B * K, Tc, D))
+        q = self._query_state()
+        x = self.layer(q.unsqueeze(0).expand(B * K, -1, -1), mem)
+        return self.head(x).reshape(B, K, self.config.num_branches, -1)
+
+    def macs(self, steps: int, memory_tokens: int) -> float:
+        """MACs of one call for one sample (K steps), counted by PyTorch's FlopCounterMode."""
+        from .flops import flop_counter_macs
+
+        was = self.training
+        self.eval()
+        try:
+            mem = torch.zeros(1, steps, memory_tokens, self.config.memory_dim, device=self.head.weight.device)
+            with torch.no_grad():
+                self._query_cache = None
+                total = flop_counter_macs(lambda: self(mem))
+        finally:
+            self.train(was)
+        return total
+
+
+class StaticRouter(nn.Module):
+    """Learning-to-Cache-style baseline: one learned logit vector per (step, branch), the same for
+    every observation. Trained by the same loop as :class:`Pruner`; ignores the memory's content."""
+
+    def __init__(self, config: PrunerConfig):
+        super().__init__()
+        if config.kind != "static":
+            raise ValueError("StaticRouter needs PrunerConfig(kind='static', steps=K)")
+        self.config = config
+        logits = torch.zeros(config.steps, config.num_branches, len(config.codes))
+        logits[..., 0] = 2.0  # start near "compute everything", like the pruner
+        self.logits = nn.Parameter(logits)
+
+    def forward(self, memory: torch.Tensor) -> torch.Tensor:
+        """memory [B, K, ...] -> logits [B, K, nb, O] (the same for every sample)."""
+        B, K = memory.shape[:2]
+        if K != self.config.steps:
+            raise ValueError(f"static router was trained for {self.config.steps} steps, the sampler runs {K}")
+        return self.logits[None].expand(B, -1, -1, -1)
+
+    def macs(self, steps: int, memory_tokens: int) -> float:
+        return 0.0  # a table lookup
+
+
+def build_pruner(config: PrunerConfig) -> nn.Module:
+    """A :class:`Pruner` or, for ``kind="static"``, a :class:`StaticRouter`."""
+    return StaticRouter(config) if config.kind == "static" else Pruner(config)
+
+
+PrunerModule = Union[Pruner, StaticRouter]
+
+
+class PrunerPlan(Plan):
+    """Decisions from a :class:`Pruner`, computed once per sampling call from the condition memory."""
+
+    def __init__(self, pruner: PrunerModule, mode: str = "argmax", sparsity: Optional[float] = None,
+                 parallel: bool = True):
+        if mode not in ("argmax", "budget", "ste"):
+            raise ValueError(f"mode must be 'argmax', 'budget' or 'ste', got {mode!r}")
+        if mode == "budget":
+            if sparsity is None:
+                raise ValueError("mode='budget' needs sparsity=")
+            sparsity = check_sparsity(sparsity)
+        self.pruner = pruner if mode == "ste" else pruner.eval()  # no dropout at test time
+        self.mode = mode
+        self.sparsity = sparsity
+        self.parallel = parallel and mode != "ste"
+        self.codes = pruner.config.codes
+        self.uses = frozenset(self.codes)
+        self.soft = mode == "ste"
+        self._pending: Optional[threading.Thread] = None
+        self._gpu: Optional[tuple] = None  # (pinned host decisions, start event, done event)
+        self._result: Optional[torch.Tensor] = None
+        self._error: Optional[BaseException] = None
+        self.gates: Optional[torch.Tensor] = None
+        self.timing: dict[str, float] = {}
+        self._macs_key: Optional[tuple] = None
+        self.macs_per_sample = 0.0
+
+    def bind(self, num_branches: int, branch_kinds: Sequence[str]) -> None:
+        super().bind(num_branches, branch_kinds)
+        c = self.pruner.config
+        if c.num_branches != num_branches:
+            raise ValueError(
+                f"pruner was trained for a model with {c.num_branches} branches per step, this model "
+                f"has {num_branches}: it does not belong to this model"
+            )
+
+    def describe(self) -> str:
+        extra = f":{self.sparsity}" if self.mode == "budget" else ""
+        return f"pruner[{self.mode}{extra}]({','.join(self.pruner.config.directions)})"
+
+    # ---------------------------------------------------------------- engine interface
+    def observe(self, memory: torch.Tensor, dense: bool) -> None:
+        """Condition memory [B, K, Tc, D] of the call about to start. ``dense``: the engine will
+        compute everything anyway (first call of an episode), so no decisions are needed."""
+        self.timing = {"pruner": 0.0, "wait": 0.0}
+        self._result, self._error, self.gates, self._gpu = None, None, None, None
+        key = tuple(memory.shape[1:])
+        if key != self._macs_key:
+            self._macs_key = key
+            self.macs_per_sample = self.pruner.macs(memory.shape[1], memory.shape[2])
+        if dense:
+            return
+        if self.mode == "ste":
+            self.gates, self.probs = ste_gates(self.pruner(memory))
+            return
+        memory = memory.detach()
+        if not self.parallel:
+            self._decide(memory)
+        elif memory.is_cuda:
+            self._launch_on_side_stream(memory)
+        else:  # CPU: a worker thread (torch ops release the GIL) while step 0 runs
+            self._pending = threading.Thread(target=self._decide, args=(memory,), daemon=True)
+            self._pending.start()
+
+    def _codes(self, memory: torch.Tensor) -> torch.Tensor:
+        logits = self.pruner(memory)
+        if self.mode == "budget":
+            return budget_codes(logits, self.codes, self.sparsity)
+        return argmax_codes(logits, self.codes)
+
+    def _decide(self, memory: torch.Tensor) -> None:
+        t0 = time.perf_counter()
+        try:
+            with torch.no_grad():
+                self._result = self._codes(memory).cpu()
+        except BaseException as e:  # re-raised in the sampling thread
+            self._error = e
+        self.timing["pruner"] = time.perf_counter() - t0
+
+    def _launch_on_side_stream(self, memory: torch.Tensor) -> None:
+        """GPU: the pruner runs on a side stream that waits for the encoder's output; its decisions
+        are copied to pinned host memory without blocking, and an event marks the copy. Nothing
+        waits for it until step 1 (step 0 is dense), so the decoder's step 0 overlaps it."""
+        main = torch.cuda.current_stream(memory.device)
+        side = torch.cuda.Stream(memory.device)
+        side.wait_stream(main)
+        start, done = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        with torch.cuda.stream(side), torch.no_grad():
+            start.record(side)
+            codes = self._codes(memory)
+            host = torch.empty(codes.shape, dtype=codes.dtype, pin_memory=True)
+            host.copy_(codes, non_blocking=True)
+            done.record(side)
+        memory.record_stream(side)  # the allocator must not recycle it before the side stream is done
+        self._gpu = (host, start, done)
+
+    def _wait(self) -> torch.Tensor:
+        if self._pending is not None:
+            t0 = time.perf_counter()
+            self._pending.join()
+            self._pending = None
+            self.timing["wait"] = time.perf_counter() - t0
+        if self._gpu is not None:
+            host, start, done = self._gpu
+            t0 = time.perf_counter()
+            done.synchronize()
+            self.timing["wait"] = time.perf_counter() - t0
+            self.timing["pruner"] = start.elapsed_time(done) / 1e3
+            self._result, self._gpu = host, None
+        if self._error is not None:
+            raise self._error
+        if self._result is None:
+            raise RuntimeError(
+                "the pruner has no condition memory for this call: the model adapter must declare "
+                "Target.condition (the function that encodes the condition for all steps)"
+            )
+        return self._result
+
+    def step(self, k: int, batch: int) -> torch.Tensor:
+        codes = self._wait()
+        if codes.shape[0] != batch:
+            raise ValueError(f"pruner decided for {codes.shape[0]} samples, the batch has {batch}")
+        if k >= codes.shape[1]:
+            raise ValueError(f"pruner predicted {codes.shape[1]} steps, the sampler ran step {k}")
+        return codes[:, k]
+
+    def soft_step(self, k: int) -> torch.Tensor:
+        """Training: straight-through gates [B, nb, O] for step k."""
+        if self.gates is None:
+            raise RuntimeError("mode='ste' gates missing: the condition memory was not observed")
+        return self.gates[:, k]
+
+
+# -------------------------------------------------------------------- checkpoints
+def save_pruner(pruner: PrunerModule, path: Path, metadata: Optional[dict] = None) -> None:
+    """``<path>.safetensors`` (weights) + ``<path>.json`` (config and provenance), atomically."""
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    state = {k: v.detach().contiguous().cpu() for k, v in pruner.state_dict().items()}
+    with atomic_path(path.with_suffix(".safetensors")) as tmp:
+        save_file(state, str(tmp))
+    doc = {"format": "tts-pruner-v1", "config": asdict(pruner.config), "metadata": metadata or {}}
+    with atomic_path(path.with_suffix(".json")) as tmp:
+        Path(tmp).write_text(json.dumps(doc, indent=2))
+
+
+def load_pruner(path: Path) -> PrunerModule:
+    from safetensors.torch import load_file
+
+    path = Path(path)
+    meta = path.with_suffix(".json")
+    if not meta.exists():
+        raise FileNotFoundError(f"no pruner config at {meta} (expected <path>.json next to <path>.safetensors)")
+    doc = json.loads(meta.read_text())
+    if doc.get("format") != "tts-pruner-v1":
+        raise ValueError(f"{meta} is not a tts pruner checkpoint (format {doc.get('format')!r})")
+    cfg = doc["config"]
+    cfg["directions"] = tuple(cfg["directions"])
+    pruner = build_pruner(PrunerConfig(**cfg))
+    pruner.load_state_dict(load_file(str(path.with_suffix(".safetensors"))))
+    pruner.metadata = doc.get("metadata", {})
+    return pruner.eval()
+
+
+# -------------------------------------------------------------------- training objective
+def pruner_loss(pred: torch.Tensor, target: torch.Tensor, gates: torch.Tensor, sparsity: float,
+                lam: float = 1.0, weight: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
+    """Spec §4: L1 between the sparse and the dense action (raw units, full horizon) plus
+    ``lam`` * |per-sample reuse fraction - sparsity| (hard STE gates). ``weight`` [B] masks padded
+    samples. Returns loss, l1, sparsity term and the per-sample reuse fraction."""
+    from .gates import reuse_fraction
+
+    B = pred.shape[0]
+    w = torch.ones(B, device=pred.device) if weight is None else weight.to(pred.device)
+    denom = w.sum().clamp_min(1.0)
+    l1 = ((pred - target).abs().reshape(B, -1).mean(1) * w).sum() / denom
+    reuse = reuse_fraction(gates)
+    ls = ((reuse - sparsity).abs() * w).sum() / denom
+    return {"loss": l1 + lam * ls, "l1": l1, "sparsity_loss": ls, "reuse": reuse}
