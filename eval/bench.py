@@ -27,7 +27,7 @@ from typing import Callable
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, provenance, write_atomic, write_json  # noqa: E402
+from common import REPO, provenance, write_atomic, write_json, parse_args  # noqa: E402
 
 import tts  # noqa: E402
 from tts.flops import flop_counter_macs  # noqa: E402
@@ -193,10 +193,7 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fewer reps, batch 1 DP and diffusers DiT only")
     ap.add_argument("--out", type=Path, default=REPO / "results" / "bench_engine.json")
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
-    args = ap.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = parse_args(ap, argv)
     reps = 2 if args.quick else 5
     res = {"provenance": provenance(seeds={"torch": 0, "cond": 1, "noise": 2}), "diffusion_policy": [], "dit": []}
     for batch, per_sample in ([(1, False)] if args.quick else [(1, False), (28, False), (28, True)]):

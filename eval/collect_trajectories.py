@@ -21,7 +21,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import provenance  # noqa: E402
+from common import provenance, parse_args  # noqa: E402
 from robot import run_wave  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
@@ -52,10 +52,7 @@ def main(argv=None) -> None:
     ap.add_argument("--n-envs", type=int, default=16)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--resume", action="store_true")
-    ap.add_argument("--threads", type=int, default=None)
-    args = ap.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = parse_args(ap, argv)
     seeds = list(range(args.seed, args.seed + args.episodes))
     episodes: list[dict] = []
     if args.resume and args.out.exists():

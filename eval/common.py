@@ -59,6 +59,18 @@ def provenance(seeds: Any = None) -> dict[str, Any]:
     }
 
 
+def parse_args(ap, argv=None):
+    """``ap.parse_args(argv)`` with the shared ``--threads`` option applied (torch intra-op threads)."""
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch threads (use 1 when another job shares the CPU: oversubscribed OpenMP is 20x slower)")
+    args = ap.parse_args(argv)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    return args
+
+
 def write_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` so that an interruption never leaves a half-written file."""
     with atomic_path(Path(path)) as tmp:

@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from collect_trajectories import load_trajectories  # noqa: E402
-from common import REPO, provenance, write_json  # noqa: E402
+from common import REPO, provenance, write_json, parse_args  # noqa: E402
 from robot import accelerate, method_label  # noqa: E402
 from train_pruner import obs_dict  # noqa: E402
 
@@ -67,11 +67,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--trials", type=int, default=5)
     ap.add_argument("--frames", type=int, default=4, help="timed calls per trial (after the dense frame 0)")
     ap.add_argument("--first-episode", type=int, default=96, help="episodes used (default: past the pruner's training set)")
-    ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = parse_args(ap, argv)
     label = method_label(args)
     out_path = args.out or REPO / "results" / "robot" / f"latency_{args.task}_{label}.json"
     episodes, _ = load_trajectories(args.trajectories)

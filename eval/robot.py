@@ -29,7 +29,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, provenance, write_json  # noqa: E402
+from common import REPO, provenance, write_json, parse_args  # noqa: E402
 
 import tts  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
@@ -155,11 +155,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--trust-pickle", action="store_true", help="allow official .ckpt files (runs pickled code)")
-    ap.add_argument("--threads", type=int, default=None,
-                    help="torch threads (use 1 when another job shares the CPU: oversubscribed OpenMP is 20x slower)")
-    args = ap.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = parse_args(ap, argv)
     torch.manual_seed(args.seed)
     label = method_label(args)
     out = args.out or REPO / "results" / "robot" / f"{args.task}_{label}_{args.seed}.json"
@@ -196,6 +192,17 @@ def main(argv=None) -> dict:
     return res
 
 
+def _pruner_metadata(args) -> Optional[dict]:
+    """How the pruner of a ``--method tts`` run was trained (from its JSON), for the tables."""
+    if args.method != "tts":
+        return None
+    meta = json.loads(args.pruner.with_suffix(".json").read_text())
+    keep = ("n_train_episodes", "sparsity", "paired", "loss_space", "static", "directions", "epochs", "git_sha",
+            "command", "pruner_macs_per_call", "best_epoch")
+    return {"path": str(args.pruner), "config": meta["config"],
+            **{k: v for k, v in meta.get("metadata", {}).items() if k in keep}}
+
+
 def report(args, label, seeds, done, latencies, summary, policy) -> dict:
     eps = [done[s] for s in seeds if s in done]
     lat = np.array(latencies) if latencies else np.array([np.nan])
@@ -216,6 +223,7 @@ def report(args, label, seeds, done, latencies, summary, policy) -> dict:
         "hz_definitions": "calls_per_s = 1 / median latency of one (batched) policy call; "
                           "actions_per_s_per_env = n_action_steps / median latency",
         "tts": info,
+        "pruner_metadata": _pruner_metadata(args),
         "episodes": eps,
         "latencies_s": latencies,
         "note": "policy trained on scripted-expert demonstrations (uniform, not human data)",

@@ -20,7 +20,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from collect_trajectories import load_trajectories  # noqa: E402
-from common import provenance, write_json  # noqa: E402
+from common import provenance, write_json, parse_args  # noqa: E402
 from train_pruner import obs_dict  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
@@ -38,10 +38,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, required=True, help="output JSON; with several sparsities, one file each "
                     "named <out stem>_<sparsity>.json")
-    ap.add_argument("--threads", type=int, default=None)
-    args = ap.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = parse_args(ap, argv)
     episodes, _ = load_trajectories(args.trajectories)
     windows = np.concatenate([e["obs"] for e in episodes[:args.episodes]])
     rng = np.random.default_rng(args.seed)

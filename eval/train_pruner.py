@@ -16,6 +16,7 @@ saved every epoch under ``runs/<out name>/`` and ``--resume`` continues from it.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -27,12 +28,12 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from collect_trajectories import load_trajectories  # noqa: E402
-from common import provenance  # noqa: E402
+from common import provenance, parse_args  # noqa: E402
 
 import tts  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 from tts.io import atomic_path  # noqa: E402
-from tts.pruner import PrunerConfig, PrunerPlan, build_pruner, pruner_loss, save_pruner  # noqa: E402
+from tts.pruner import PrunerConfig, PrunerPlan, build_pruner, distill_schedule, pruner_loss, save_pruner  # noqa: E402
 from tts.trajectories import episode_groups, lockstep_frames, split_episodes  # noqa: E402
 
 KEYS = ("obs", "action_pred", "noise_seed")
@@ -60,12 +61,16 @@ def run_group(policy, plan: PrunerPlan, group, args, rng, opt=None) -> dict[str,
         obs = obs_dict(policy, frame.data["obs"])
         gen = generators(frame, args.paired, rng)
         target = frame.data["action_pred"].float()
+        if args.loss_space == "normalized":  # every action dim on the same [-1, 1] scale (spec §10 item 14)
+            target = policy.action_normalizer.normalize(target)
         if frame.first:
             policy.predict_action(obs, generator=gen)  # dense: fills the rollout cache
             continue
         w = frame.weight
         if opt is not None:
             pred = policy.predict_action(obs, generator=gen, enable_grad=True)["action_pred"]
+            if args.loss_space == "normalized":
+                pred = policy.action_normalizer.normalize(pred)
             out = pruner_loss(pred, target, plan.gates, args.sparsity, args.lam, w)
             opt.zero_grad(set_to_none=True)
             out["loss"].backward()
@@ -75,6 +80,8 @@ def run_group(policy, plan: PrunerPlan, group, args, rng, opt=None) -> dict[str,
             reuse = out["reuse"].detach()
         else:
             pred = policy.predict_action(obs, generator=gen)["action_pred"]
+            if args.loss_space == "normalized":
+                pred = policy.action_normalizer.normalize(pred)
             l1 = float(((pred - target).abs().reshape(len(w), -1).mean(1) * w).sum() / w.sum().clamp_min(1))
             reuse = (plan.last_codes[:, :] != 0).float().mean((1, 2))
         n = float(w.sum())
@@ -101,16 +108,23 @@ def main(argv=None) -> None:
     ap.add_argument("--weight-decay", type=float, default=1e-4)
     ap.add_argument("--hidden", type=int, default=64)
     ap.add_argument("--paired", action="store_true", help="replay the dense call's noise (paired target)")
+    ap.add_argument("--loss-space", choices=["raw", "normalized"], default="raw",
+                    help="L1 on raw actions (the paper) or on the policy's normalised actions")
     ap.add_argument("--static", action="store_true",
                     help="train a static router instead (Learning-to-Cache-style baseline: one decision per "
                          "step x branch, not per observation)")
+    ap.add_argument("--prior", type=Path, default=None,
+                    help="a searched static schedule (eval/search_static.py JSON) whose decisions become fixed "
+                         "prior logits; the pruner (head zero-initialised) learns per-observation corrections")
+    ap.add_argument("--init-schedule", type=Path, default=None,
+                    help="warm start: fit the pruner to a searched static schedule (eval/search_static.py JSON) "
+                         "by cross-entropy before the straight-through training")
+    ap.add_argument("--val-mode", choices=["argmax", "budget"], default="argmax",
+                    help="test-time rule used for validation and checkpoint selection (budget: exactly --sparsity)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--run-dir", type=Path, default=None)
     ap.add_argument("--resume", action="store_true")
-    ap.add_argument("--threads", type=int, default=None)
-    args = ap.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = parse_args(ap, argv)
     tts.plans.check_sparsity(args.sparsity)
     directions = tts.plans.check_directions(args.directions.split(","))
     torch.manual_seed(args.seed)
@@ -121,7 +135,10 @@ def main(argv=None) -> None:
     cfg = policy.model.config
     pruner = build_pruner(PrunerConfig(
         memory_dim=cfg.n_emb, num_branches=3 * cfg.n_layer, directions=directions, hidden=args.hidden,
-        kind="static" if args.static else "transformer", steps=policy.cfg.num_inference_steps))
+        kind="static" if args.static else "transformer", steps=policy.cfg.num_inference_steps,
+        prior=args.prior is not None))
+    if args.prior is not None:
+        pruner.set_prior(tts.plans.from_tensor(json.loads(args.prior.read_text())["grid"]).decisions[0])
     train_plan = PrunerPlan(pruner, mode="ste")
     opt = torch.optim.AdamW(pruner.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     groups_per_epoch = math.ceil(len(train) / args.batch)
@@ -137,6 +154,21 @@ def main(argv=None) -> None:
         sched.load_state_dict(st["sched"])
         epoch, history, best, best_state = st["epoch"], st["history"], st["best"], st["best_state"]
         print(f"resumed after epoch {epoch}")
+    if epoch == 0 and (args.init_schedule is not None or args.prior is not None):
+        row = {"epoch": 0}
+        if args.init_schedule is not None:
+            grid = tts.plans.from_tensor(json.loads(args.init_schedule.read_text())["grid"]).decisions[0]
+            windows = torch.as_tensor(np.concatenate([e["obs"] for e in train]))
+            with torch.no_grad():
+                cond = policy.obs_normalizer.normalize(windows)[:, -policy.cfg.n_obs_steps:]
+                memory = policy.model.condition_memory(policy.scheduler.timesteps, cond)
+            row["init_schedule_agreement"] = distill_schedule(pruner, memory, grid, batch=16, seed=args.seed)
+        v = validate(policy, pruner, val, directions, args)
+        row.update({f"val_{k}": _mean(v, k) for k in ("l1", "sparsity")})
+        row["val_score"] = row["val_l1"] + args.lam * abs(row["val_sparsity"] - args.sparsity)
+        print(" ".join(f"{k}={v:.4g}" for k, v in row.items()))
+        history.append(row)
+        best, best_state = row, {k: v.clone() for k, v in pruner.state_dict().items()}
     rng = np.random.default_rng(args.seed + epoch)
     noise_rng = torch.Generator().manual_seed(args.seed + 1000 * epoch)
     t_start, train_seconds = time.time(), (history[-1].get("train_seconds", 0.0) if history else 0.0)
@@ -150,11 +182,7 @@ def main(argv=None) -> None:
         acc.remove()
         lr = opt.param_groups[0]["lr"]
         sched.step()
-        val_plan = RecordingPlan(pruner)
-        acc = tts.accelerate(policy, directions, plan=val_plan)
-        v = [run_group(policy, val_plan, g, args, torch.Generator().manual_seed(args.seed + 7), None)
-             for g in episode_groups(val, args.batch, None)]
-        acc.remove()
+        v = validate(policy, pruner, val, directions, args)
         row = {"epoch": epoch + 1, **{f"train_{k}": _mean(stats, k) for k in ("l1", "sparsity")},
                **{f"val_{k}": _mean(v, k) for k in ("l1", "sparsity")}, "lr": lr}
         row["val_score"] = row["val_l1"] + args.lam * abs(row["val_sparsity"] - args.sparsity)
@@ -183,11 +211,19 @@ def main(argv=None) -> None:
           f"wrote {args.out}.safetensors/.json")
 
 
-class RecordingPlan(PrunerPlan):
-    """Argmax decisions (sequential), keeping the last call's codes for the sparsity statistics."""
+def validate(policy, pruner, val, directions, args) -> list[dict]:
+    """The test-time rule (``--val-mode``) on the validation episodes, paired or fixed noise."""
+    plan = RecordingPlan(pruner, args.val_mode, args.sparsity)
+    with tts.accelerate(policy, directions, plan=plan):
+        return [run_group(policy, plan, g, args, torch.Generator().manual_seed(args.seed + 7), None)
+                for g in episode_groups(val, args.batch, None)]
 
-    def __init__(self, pruner):
-        super().__init__(pruner, mode="argmax", parallel=False)
+
+class RecordingPlan(PrunerPlan):
+    """Test-time decisions (sequential), keeping the last call's codes for the sparsity statistics."""
+
+    def __init__(self, pruner, mode: str = "argmax", sparsity: float | None = None):
+        super().__init__(pruner, mode=mode, sparsity=sparsity if mode == "budget" else None, parallel=False)
 
     def _decide(self, memory) -> None:
         super()._decide(memory)

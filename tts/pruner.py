@@ -28,10 +28,10 @@ import torch.nn as nn
 
 from .gates import argmax_codes, budget_codes, ste_gates
 from .io import atomic_path
-from .plans import COMPUTE, DIRECTIONS, Plan, check_directions, check_sparsity
+from .plans import COMPUTE, DIRECTIONS, TIMESTEP, Plan, check_directions, check_sparsity
 
 __all__ = ["PrunerConfig", "Pruner", "StaticRouter", "build_pruner", "PrunerPlan", "pruner_loss", "save_pruner",
-           "load_pruner"]
+           "load_pruner", "distill_schedule"]
 
 
 @dataclass
@@ -46,7 +46,8 @@ class PrunerConfig:
     queries: str = "sinusoidal"  # or "learned"
     branch_names: list[str] = field(default_factory=list)  # of the model it was trained on
     kind: str = "transformer"  # or "static": one learned decision per (step, branch), see StaticRouter
-    steps: int = 0  # K, for kind="static"
+    steps: int = 0  # K, for kind="static" and for a prior
+    prior: bool = False  # add fixed prior logits [steps, nb, O] (a searched schedule) to the pruner's own
 
     def __post_init__(self) -> None:
         self.directions = check_directions(self.directions)
@@ -56,8 +57,8 @@ class PrunerConfig:
             raise ValueError(f"queries must be 'sinusoidal' or 'learned', got {self.queries!r}")
         if self.kind not in ("transformer", "static"):
             raise ValueError(f"kind must be 'transformer' or 'static', got {self.kind!r}")
-        if self.kind == "static" and self.steps < 1:
-            raise ValueError("a static router needs steps= (the number of denoising steps K)")
+        if (self.kind == "static" or self.prior) and self.steps < 1:
+            raise ValueError("a static router or a prior needs steps= (the number of denoising steps K)")
 
     @property
     def codes(self) -> list[int]:
@@ -109,8 +110,13 @@ class Pruner(nn.Module):
         for lin in (self.memory_proj, self.head):
             nn.init.xavier_uniform_(lin.weight)
             nn.init.zeros_(lin.bias)
-        with torch.no_grad():  # start near "compute everything" so early training is stable
-            self.head.bias[0] = 2.0
+        if c.prior:  # decisions start as the prior schedule; the pruner learns per-observation corrections
+            self.register_buffer("prior", torch.zeros(c.steps, c.num_branches, len(c.codes)))
+            nn.init.zeros_(self.head.weight)
+        else:
+            self.prior = None
+            with torch.no_grad():  # start near "compute everything" so early training is stable
+                self.head.bias[0] = 2.0
         self._query_cache: Optional[torch.Tensor] = None
 
     def train(self, mode: bool = True) -> "Pruner":
@@ -134,7 +140,31 @@ class Pruner(nn.Module):
         mem = self.memory_proj(memory.reshape(B * K, Tc, D))
         q = self._query_state()
         x = self.layer(q.unsqueeze(0).expand(B * K, -1, -1), mem)
-        return self.head(x).reshape(B, K, self.config.num_branches, -1)
+        logits = self.head(x).reshape(B, K, self.config.num_branches, -1)
+        if self.prior is not None:
+            if K != self.prior.shape[0]:
+                raise ValueError(f"the pruner's prior schedule has {self.prior.shape[0]} steps, the sampler runs {K}")
+            logits = logits + self.prior
+        return logits
+
+    def set_prior(self, grid: torch.Tensor, margin: float = 3.0) -> None:
+        """Prior logits from a decision grid [K, nb] (e.g. a searched schedule): the grid's option gets
+        ``margin``; where the grid computes, the timestep option (else the first reuse option) gets
+        ``margin / 2``, so that a forced reuse (budget mode) falls back to it."""
+        if self.prior is None:
+            raise ValueError("this pruner was built without a prior (PrunerConfig(prior=True, steps=K))")
+        codes = self.config.codes
+        if tuple(grid.shape) != tuple(self.prior.shape[:2]):
+            raise ValueError(f"schedule shape {tuple(grid.shape)} != [steps, branches] {tuple(self.prior.shape[:2])}")
+        unknown = sorted(set(grid.unique().tolist()) - set(codes))
+        if unknown:
+            raise ValueError(f"the schedule uses decision codes {unknown} the pruner has no option for ({codes})")
+        option = torch.tensor([codes.index(c) for c in grid.flatten().tolist()]).reshape(grid.shape)
+        fallback = codes.index(TIMESTEP) if TIMESTEP in codes else 1
+        prior = torch.zeros_like(self.prior)
+        prior[..., fallback] = torch.where(option == 0, margin / 2, 0.0)
+        prior.scatter_(-1, option[..., None], margin)
+        self.prior.copy_(prior)
 
     def macs(self, steps: int, memory_tokens: int) -> float:
         """MACs of one call for one sample (K steps), counted by PyTorch's FlopCounterMode."""
@@ -347,6 +377,36 @@ def load_pruner(path: Path) -> PrunerModule:
     pruner.load_state_dict(load_file(str(path.with_suffix(".safetensors"))))
     pruner.metadata = doc.get("metadata", {})
     return pruner.eval()
+
+
+# -------------------------------------------------------------------- warm start from a schedule
+def distill_schedule(pruner: PrunerModule, memory: torch.Tensor, grid: torch.Tensor, steps: int = 200,
+                     lr: float = 1e-3, batch: int = 64, seed: int = 0) -> float:
+    """Fit the pruner's logits to a static decision grid [K, nb] (e.g. a searched schedule) by
+    cross-entropy on condition memories [N, K, Tc, D]: a cheap warm start (no sampler in the loop)
+    before the straight-through training adapts the decisions per observation. Returns the final
+    agreement (fraction of (k, b) whose argmax equals the grid)."""
+    codes = pruner.config.codes
+    unknown = sorted(set(grid.unique().tolist()) - set(codes))
+    if unknown:
+        raise ValueError(f"the schedule uses decision codes {unknown} the pruner has no option for ({codes})")
+    target = torch.tensor([codes.index(c) for c in grid.flatten().tolist()]).reshape(grid.shape)  # [K, nb]
+    opt = torch.optim.Adam(pruner.parameters(), lr=lr)
+    g = torch.Generator().manual_seed(seed)
+    was = pruner.training
+    pruner.train()
+    for _ in range(steps):
+        idx = torch.randint(0, memory.shape[0], (min(batch, memory.shape[0]),), generator=g)
+        logits = pruner(memory[idx])  # [b, K, nb, O]
+        loss = nn.functional.cross_entropy(logits[:, 1:].reshape(-1, logits.shape[-1]),
+                                           target[1:].expand(len(idx), -1, -1).reshape(-1))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    pruner.train(was)
+    with torch.no_grad():
+        agree = (pruner(memory[:batch]).argmax(-1)[:, 1:] == target[1:]).float().mean()
+    return float(agree)
 
 
 # -------------------------------------------------------------------- training objective

@@ -23,7 +23,7 @@ import torch
 
 from .plans import COMPUTE, TIMESTEP, Plan, check_sparsity
 
-__all__ = ["reuse_errors", "search_schedule"]
+__all__ = ["record_branch_outputs", "reuse_errors", "search_schedule"]
 
 
 class _ComputeAndKeep(Plan):
@@ -39,16 +39,13 @@ class _ComputeAndKeep(Plan):
         return "record"
 
 
-def reuse_errors(model, sample: Callable[[], None]) -> torch.Tensor:
-    """``E[b, j, i]`` (float64, [nb, K, K], zero where i >= j) averaged over the samples of every
-    dense sampling call that ``sample()`` runs on ``model`` (anything :func:`tts.accelerate` accepts).
-    All calls must have the same number of steps."""
+def record_branch_outputs(model, sample: Callable[[], None]) -> list[list[list[torch.Tensor]]]:
+    """Every branch's output at every step of every dense sampling call that ``sample()`` runs on
+    ``model`` (anything :func:`tts.accelerate` accepts): ``out[call][k][b]``, float32 copies."""
     from . import accelerate
 
     per_call: list[list[list[torch.Tensor]]] = []
     acc = accelerate(model, ("timestep",), plan=_ComputeAndKeep())
-    denoiser = acc.target.denoiser
-
     seen: list = [None]
 
     def after_step(module, args, output):
@@ -58,7 +55,7 @@ def reuse_errors(model, sample: Callable[[], None]) -> torch.Tensor:
             per_call.append([])
         per_call[-1].append([t.detach().float().clone() for t in acc.cache.timestep])
 
-    handle = denoiser.register_forward_hook(after_step)
+    handle = acc.target.denoiser.register_forward_hook(after_step)
     try:
         with torch.no_grad():
             sample()
@@ -67,6 +64,14 @@ def reuse_errors(model, sample: Callable[[], None]) -> torch.Tensor:
         acc.remove()
     if not per_call:
         raise ValueError("sample() ran no sampling call on the model")
+    return per_call
+
+
+def reuse_errors(model, sample: Callable[[], None]) -> torch.Tensor:
+    """``E[b, j, i]`` (float64, [nb, K, K], zero where i >= j) averaged over the samples of every
+    dense sampling call that ``sample()`` runs on ``model``. All calls must have the same number of
+    steps."""
+    per_call = record_branch_outputs(model, sample)
     K = len(per_call[0])
     if any(len(c) != K for c in per_call):
         raise ValueError("all calibration calls must run the same number of denoising steps")

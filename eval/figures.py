@@ -1,0 +1,189 @@
+"""Figures of the robot experiments (PNG under docs/), from committed checkpoints and result JSONs.
+
+    python eval/figures.py masks --task lift --checkpoint checkpoints/lift_dpt --pruner checkpoints/lift_pruner \
+        --trajectories data/trajectories/lift.pt          # pruning masks per rollout iteration (paper Figs 12-16)
+    python eval/figures.py similarity --task lift --checkpoint checkpoints/lift_dpt \
+        --trajectories data/trajectories/lift.pt          # forward / timestep / rollout feature similarity (Fig 9)
+    python eval/figures.py data-efficiency --task lift    # success vs training trajectories (Figs 10-11)
+
+Masks and similarities use held-out recorded episodes (index >= ``--first-episode``, past the
+pruner's training and validation sets) with the recorded noise seeds.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from collect_trajectories import load_trajectories  # noqa: E402
+from common import REPO, parse_args  # noqa: E402
+from train_pruner import KEYS, obs_dict  # noqa: E402
+
+import tts  # noqa: E402
+from tts.adapters.dp_policy import load_policy  # noqa: E402
+from tts.static_search import record_branch_outputs  # noqa: E402
+from tts.trajectories import lockstep_frames  # noqa: E402
+
+DOCS = REPO / "docs"
+COLORS = ["#1b1b1b", "#e6550d", "#3182bd", "#31a354"]  # compute, forward, timestep, rollout
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def replay(policy, episodes, fn=None):
+    """Run ``policy`` over recorded episodes in lockstep with their recorded noise."""
+    policy.reset()
+    for frame in lockstep_frames(episodes, KEYS):
+        gen = [torch.Generator().manual_seed(int(s)) for s in frame.data["noise_seed"].tolist()]
+        policy.predict_action(obs_dict(policy, frame.data["obs"]), generator=gen)
+        if fn is not None:
+            fn(frame)
+
+
+def masks(args) -> Path:
+    from matplotlib.colors import ListedColormap
+
+    plt = _plt()
+    episodes, _ = load_trajectories(args.trajectories)
+    ep = episodes[args.first_episode]
+    policy = load_policy(args.checkpoint)
+    pruner = tts.load_pruner(args.pruner)
+    with tts.accelerate(policy, pruner.config.directions, pruner=pruner, sparsity=args.sparsity) as acc:
+        replay(policy, [ep])
+        calls = acc.summary().calls
+    n = min(args.calls, len(calls))
+    fig, axes = plt.subplots(1, n, figsize=(1.6 * n + 1, 5), sharey=True)
+    axes = np.atleast_1d(axes)
+    for r, ax in enumerate(axes):
+        d = calls[r].decisions()[:, 0].numpy()  # [K, nb]
+        ax.imshow(d, aspect="auto", cmap=ListedColormap(COLORS), vmin=0, vmax=3, interpolation="nearest")
+        sp = float((d != 0).mean())
+        ax.set_title(f"call {r}" + (" (dense)" if calls[r].dense else f"\n{sp:.0%} reused"), fontsize=8)
+        ax.set_xlabel("branch (SA, CA, FF per layer)", fontsize=7)
+        ax.tick_params(labelsize=6)
+    axes[0].set_ylabel("denoising step k")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in COLORS]
+    fig.legend(handles, ["compute", "forward", "timestep", "rollout"], loc="lower center", ncol=4, fontsize=8)
+    mode = "argmax" if args.sparsity is None else f"budget {args.sparsity:g}"
+    fig.suptitle(f"{args.task}: pruner decisions per rollout iteration ({Path(args.pruner).name}, {mode}; "
+                 f"held-out episode seed {ep['seed']})", fontsize=9)
+    fig.tight_layout(rect=(0, 0.06, 1, 0.95))
+    out = DOCS / f"{args.task}_pruning_masks.png"
+    fig.savefig(out, dpi=110)
+    return out
+
+
+def _cos(a: torch.Tensor, b: torch.Tensor) -> float:
+    a, b = a.reshape(a.shape[0], -1), b.reshape(b.shape[0], -1)
+    return float(torch.nn.functional.cosine_similarity(a, b, dim=1).mean())
+
+
+def similarity(args) -> Path:
+    plt = _plt()
+    episodes, _ = load_trajectories(args.trajectories)
+    eps = episodes[args.first_episode:args.first_episode + args.episodes]
+    policy = load_policy(args.checkpoint)
+    n_frames = min(len(e["obs"]) for e in eps)
+    eps = [{k: v[:n_frames] if k in KEYS else v for k, v in e.items()} for e in eps]
+    outs = record_branch_outputs(policy, lambda: replay(policy, eps))  # [call][k][b] -> [E, H, D]
+    K, nb = len(outs[0]), len(outs[0][0])
+    kinds = [b % 3 for b in range(nb)]
+    sims = {name: np.full((K, nb), np.nan) for name in ("forward", "timestep", "rollout")}
+    for k in range(K):
+        for b in range(nb):
+            vals = {"forward": [], "timestep": [], "rollout": []}
+            for r, call in enumerate(outs):
+                if b >= 3:
+                    vals["forward"].append(_cos(call[k][b], call[k][b - 3]))  # same kind, previous layer
+                if k > 0:
+                    vals["timestep"].append(_cos(call[k][b], call[k - 1][b]))
+                if r > 0:
+                    vals["rollout"].append(_cos(call[k][b], outs[r - 1][k][b]))
+            for name, v in vals.items():
+                if v:
+                    sims[name][k, b] = np.mean(v)
+    fig, axes = plt.subplots(1, 4, figsize=(14, 4.2), gridspec_kw={"width_ratios": [1, 1, 1, 1.3]})
+    for ax, (name, m) in zip(axes, sims.items()):
+        im = ax.imshow(m, aspect="auto", vmin=0, vmax=1, cmap="viridis", interpolation="nearest")
+        ax.set_title(f"{name} direction", fontsize=9)
+        ax.set_xlabel("branch (SA, CA, FF per layer)", fontsize=8)
+    axes[0].set_ylabel("denoising step k")
+    fig.colorbar(im, ax=axes[2], fraction=0.05)
+    ks = np.arange(K)
+    for name, m in sims.items():
+        axes[3].plot(ks, np.nanmean(m, axis=1), label=name)
+    axes[3].set_xlabel("denoising step k")
+    axes[3].set_ylabel("mean cosine similarity over branches")
+    axes[3].legend(fontsize=8)
+    axes[3].grid(alpha=0.3)
+    fig.suptitle(f"{args.task}: cosine similarity of branch outputs with what each direction would reuse "
+                 f"({len(eps)} held-out episodes x {n_frames} calls, dense policy)", fontsize=9)
+    fig.tight_layout()
+    out = DOCS / f"{args.task}_feature_similarity.png"
+    fig.savefig(out, dpi=110)
+    return out
+
+
+def data_efficiency(args) -> Path:
+    plt = _plt()
+    rows = []
+    for path in sorted((REPO / "results" / "robot").glob(f"{args.task}_tts-*.json")):
+        r = json.loads(path.read_text())
+        meta = r.get("pruner_metadata") or {}
+        if "n_train_episodes" in meta and r.get("episodes_done") == r.get("episodes_requested"):
+            rows.append((meta["n_train_episodes"], r["success_rate"], r["provenance"]["seeds"][0], path.name))
+    if not rows:
+        raise SystemExit(f"no {args.task} tts results with pruner metadata in results/robot/")
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    ns = sorted({n for n, *_ in rows})
+    means = [np.mean([s for n2, s, *_ in rows if n2 == n]) for n in ns]
+    ax.plot(ns, means, "o-", label="TTS pruner (mean over runs)")
+    for n, s, *_ in rows:
+        ax.scatter([n], [s], color="gray", s=10)
+    dense = REPO / "results" / "robot" / f"{args.task}_dense_100000.json"
+    if dense.exists():
+        ax.axhline(json.loads(dense.read_text())["success_rate"], color="k", ls="--", label="dense")
+    ax.set_xscale("log", base=2)
+    ax.set_xlabel("training trajectories")
+    ax.set_ylabel("success rate (50 test episodes)")
+    ax.set_ylim(0, 1.05)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{args.task}: success vs number of pruner training trajectories", fontsize=9)
+    fig.tight_layout()
+    out = DOCS / f"{args.task}_data_efficiency.png"
+    fig.savefig(out, dpi=110)
+    return out
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("figure", choices=["masks", "similarity", "data-efficiency"])
+    ap.add_argument("--task", required=True)
+    ap.add_argument("--checkpoint", type=Path)
+    ap.add_argument("--pruner", type=Path)
+    ap.add_argument("--sparsity", type=float, default=None, help="masks: exact-budget mode")
+    ap.add_argument("--trajectories", type=Path)
+    ap.add_argument("--first-episode", type=int, default=-8, help="first held-out episode (negative: from the end)")
+    ap.add_argument("--episodes", type=int, default=4, help="similarity: episodes")
+    ap.add_argument("--calls", type=int, default=6, help="masks: rollout iterations shown")
+    args = parse_args(ap, argv)
+    DOCS.mkdir(exist_ok=True)
+    fn = {"masks": masks, "similarity": similarity, "data-efficiency": data_efficiency}[args.figure]
+    print(f"wrote {fn(args)}")
+
+
+if __name__ == "__main__":
+    main()
