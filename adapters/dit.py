@@ -9,12 +9,22 @@ Branches of a DiT block (official forward ``x + gate * f(modulate(norm(x), shift
 and evaluated only if one of them computes. Any block with the attributes ``norm1, attn, norm2, mlp,
 adaLN_modulation`` where ``attn``/``mlp`` are timm's ``Attention``/``Mlp`` is recognised, so users'
 own copies of the DiT file work too.
+
+Class-conditional sampling with tts: :meth:`DiT.condition_memory` computes DiT's conditioning vector
+``c = t_embedder(t_k) + y_embedder(y)`` for all K sampling steps in one batched call ([B, K, 1, hidden];
+the adapter declares it as ``Target.condition``, so a learned :class:`tts.Pruner` reads it), and
+``forward(x, t, y, c=memory[:, k])`` skips the embedders. :func:`sample_dit` is DiT's DDIM/DDPM
+sampling loop with batched classifier-free guidance ([cond; uncond] rows, guidance on eps only).
+:func:`load_dit` reads our ``.safetensors`` + ``.json`` pair or an official ``DiT-XL-2-256x256.pt``.
 """
 from __future__ import annotations
 
+import json
 import math
-from dataclasses import dataclass
-from typing import Any, Optional
+import re
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Optional, Sequence, Union
 
 import torch
 import torch.nn as nn
@@ -22,7 +32,8 @@ import torch.nn as nn
 from tts.flops import register_mac_rule
 from tts.spec import BlockSpec, BranchSpec, Lazy, Target, register_block_family, register_model_adapter
 
-__all__ = ["DiTConfig", "DiT", "DiTBlock", "DIT_CONFIGS", "dit_block_spec"]
+__all__ = ["DiTConfig", "DiT", "DiTBlock", "DIT_CONFIGS", "dit_block_spec", "save_dit", "load_dit",
+           "dit_config_from_state_dict", "dit_scheduler", "sample_dit", "DIT_DOWNLOAD_URL"]
 
 
 def modulate(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
@@ -49,6 +60,11 @@ DIT_CONFIGS = {
     "DiT-B/2": DiTConfig(depth=12, hidden_size=768, patch_size=2, num_heads=12),
     "DiT-S/2": DiTConfig(depth=12, hidden_size=384, patch_size=2, num_heads=6),
 }
+for _name, _cfg in list(DIT_CONFIGS.items()):  # the paper's /4 and /8 variants (same widths, larger patches)
+    for _p in (4, 8):
+        DIT_CONFIGS[_name[:-1] + str(_p)] = DiTConfig(depth=_cfg.depth, hidden_size=_cfg.hidden_size, patch_size=_p,
+                                                      num_heads=_cfg.num_heads)
+del _name, _cfg, _p
 
 
 class TimestepEmbedder(nn.Module):
@@ -197,9 +213,43 @@ class DiT(nn.Module):
         x = torch.einsum("nhwpqc->nchpwq", x)
         return x.reshape(x.shape[0], c, h * p, w * p)
 
-    def forward(self, x: torch.Tensor, t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    def condition_memory(self, timesteps: Any, y: torch.Tensor) -> torch.Tensor:
+        """DiT's conditioning vector for all K sampling timesteps at once: [B, K, 1, hidden].
+
+        ``memory[:, k, 0] = t_embedder(t_k) + y_embedder(y, train=False)`` (one batched embedder call for
+        the K timesteps, one for the B labels; no class dropout). Pass ``c=memory[:, k]`` to
+        :meth:`forward` at step k. Equal to the per-step embedders up to float round-off (a matmul's
+        rows may differ in the last bit with the number of rows it is called on).
+        """
+        device = self.pos_embed.device
+        timesteps = torch.as_tensor(timesteps, device=device).reshape(-1)
+        y = torch.as_tensor(y, device=device).reshape(-1)
+        t_emb = self.t_embedder(timesteps)  # [K, D]
+        y_emb = self.y_embedder(y, False)  # [B, D]
+        return (t_emb[None] + y_emb[:, None]).unsqueeze(2)
+
+    def _check_condition(self, c: torch.Tensor, batch: int) -> torch.Tensor:
+        h = self.pos_embed.shape[-1]
+        if c.dim() == 3 and c.shape[1] == 1:  # a slice memory[:, k] of condition_memory's output
+            c = c[:, 0]
+        if c.dim() != 2 or c.shape[0] != batch or c.shape[1] != h:
+            raise ValueError(f"c must be the conditioning vector [batch={batch}, hidden={h}] (or memory[:, k] "
+                             f"of condition_memory, [{batch}, 1, {h}]); got {tuple(c.shape)}")
+        return c
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor, y: torch.Tensor,
+                c: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """x [B, C, H, W], t [B], y [B] -> [B, out_channels, H, W].
+
+        ``c``: a precomputed conditioning vector for this step ([B, hidden] or ``memory[:, k]`` of
+        :meth:`condition_memory`); the timestep and label embedders are then skipped (``t`` only serves
+        step tracking, ``y`` is unused; no class dropout). With ``c=None`` this is the official forward.
+        """
         x = self.x_embedder(x) + self.pos_embed
-        c = self.t_embedder(t) + self.y_embedder(y, self.training)
+        if c is None:
+            c = self.t_embedder(t) + self.y_embedder(y, self.training)
+        else:
+            c = self._check_condition(c, x.shape[0])
         for block in self.blocks:
             x = block(x, c)
         return self.unpatchify(self.final_layer(x, c))
@@ -212,6 +262,239 @@ class DiT(nn.Module):
         cond, uncond = torch.split(eps, len(eps) // 2, dim=0)
         half_eps = uncond + cfg_scale * (cond - uncond)
         return torch.cat([torch.cat([half_eps, half_eps], dim=0), rest], dim=1)
+
+
+# ------------------------------------------------------------------------------- checkpoints
+DIT_FORMAT = "tts-dit-v1"
+DIT_DOWNLOAD_URL = "https://dl.fbaipublicfiles.com/DiT/models/{name}"  # official pretrained state dicts
+_OFFICIAL_SUFFIXES = (".pt", ".pth", ".bin")
+
+
+def _pair(path: Path) -> tuple[Path, Path]:
+    """``<path>.safetensors`` and ``<path>.json`` (``path`` may carry either suffix)."""
+    path = Path(path)
+    base = path.with_suffix("") if path.suffix in (".safetensors", ".json") else path
+    return base.with_name(base.name + ".safetensors"), base.with_name(base.name + ".json")
+
+
+def save_dit(model: DiT, path: Union[str, Path], metadata: Optional[dict] = None,
+             dtype: Optional[torch.dtype] = None) -> None:
+    """Write ``<path>.safetensors`` (weights, optionally cast to ``dtype``) and ``<path>.json`` (the
+    :class:`DiTConfig` and ``metadata``), each atomically."""
+    from safetensors.torch import save_file
+
+    from tts.io import atomic_path
+
+    weights, meta = _pair(Path(path))
+    state = {k: (v.to(dtype) if dtype is not None and v.is_floating_point() else v).detach().contiguous().cpu()
+             for k, v in model.state_dict().items()}
+    with atomic_path(weights) as tmp:
+        save_file(state, str(tmp))
+    doc = {"format": DIT_FORMAT, "config": asdict(model.config), "metadata": metadata or {}}
+    with atomic_path(meta) as tmp:
+        Path(tmp).write_text(json.dumps(doc, indent=2) + "\n")
+
+
+def _missing_model_error(path: Path) -> FileNotFoundError:
+    official = (
+        "an official facebookresearch/DiT state dict: download DiT-XL-2-256x256.pt from\n"
+        f"    {DIT_DOWNLOAD_URL.format(name='DiT-XL-2-256x256.pt')} (512x512: DiT-XL-2-512x512.pt)\n"
+        "    into checkpoints/ and pass its path (checkpoints/DiT-XL-2-256x256.pt); latent DiTs also need the\n"
+        "    Stable Diffusion VAE (a diffusers folder of stabilityai/sd-vae-ft-ema) to decode images")
+    if path.suffix in _OFFICIAL_SUFFIXES:
+        return FileNotFoundError(f"no DiT checkpoint at {path}. Expected {official}.\n"
+                                 "  (A tts DiT trained here instead: python eval/train_dit.py --out PATH, "
+                                 "then pass PATH.)")
+    weights, meta = _pair(path)
+    return FileNotFoundError(
+        f"no DiT checkpoint at {path}. Expected either\n"
+        f"  - a tts DiT: {weights} + {meta} (train one: python eval/train_dit.py --out {weights.with_suffix('')}), or\n"
+        f"  - {official}.")
+
+
+def _heads_for(hidden: int, depth: int, patch: int) -> Optional[int]:
+    for cfg in DIT_CONFIGS.values():
+        if (cfg.hidden_size, cfg.depth, cfg.patch_size) == (hidden, depth, patch):
+            return cfg.num_heads
+    return None
+
+
+def dit_config_from_state_dict(state: dict, config: Union[None, str, DiTConfig] = None,
+                               num_heads: Optional[int] = None) -> DiTConfig:
+    """Infer the :class:`DiTConfig` of an official-layout state dict from its tensor shapes.
+
+    Everything but the number of attention heads follows from the shapes; heads come from ``num_heads``,
+    from ``config`` (a :data:`DIT_CONFIGS` name such as ``"DiT-XL/2"``, checked against the shapes), or
+    from the official config with the same width, depth and patch size. A :class:`DiTConfig` given as
+    ``config`` is returned as is. The label table is assumed to hold the extra CFG "null" row, as in every
+    official checkpoint.
+    """
+    if isinstance(config, DiTConfig):
+        return config
+    need = ["x_embedder.proj.weight", "pos_embed", "y_embedder.embedding_table.weight", "final_layer.linear.weight",
+            "blocks.0.mlp.fc1.weight"]
+    missing = [k for k in need if k not in state]
+    if missing:
+        raise ValueError(f"not an official-layout DiT state dict: missing {missing} "
+                         f"(first keys: {list(state)[:5]})")
+    hidden, in_ch, patch, _ = state["x_embedder.proj.weight"].shape
+    num_patches = state["pos_embed"].shape[1]
+    grid = math.isqrt(num_patches)
+    if grid * grid != num_patches:
+        raise ValueError(f"pos_embed has {num_patches} positions, not a square grid")
+    depth = 1 + max(int(m.group(1)) for k in state if (m := re.match(r"blocks\.(\d+)\.", k)))
+    out_ch = state["final_layer.linear.weight"].shape[0] // (patch * patch)
+    if out_ch not in (in_ch, 2 * in_ch):
+        raise ValueError(f"final layer predicts {out_ch} channels for {in_ch} input channels (expected "
+                         f"{in_ch} or {2 * in_ch} with learned sigma)")
+    mlp_ratio = state["blocks.0.mlp.fc1.weight"].shape[0] / hidden
+    if isinstance(config, str):
+        if config not in DIT_CONFIGS:
+            raise ValueError(f"unknown DiT config {config!r}; known: {sorted(DIT_CONFIGS)}")
+        named = DIT_CONFIGS[config]
+        if (named.hidden_size, named.depth, named.patch_size) != (hidden, depth, patch):
+            raise ValueError(f"{config} has hidden {named.hidden_size}, depth {named.depth}, patch "
+                             f"{named.patch_size}; the state dict has {hidden}, {depth}, {patch}")
+        num_heads = num_heads or named.num_heads
+    elif config is not None:
+        raise TypeError(f"config must be a DIT_CONFIGS name or a DiTConfig, got {type(config).__name__}")
+    num_heads = num_heads or _heads_for(hidden, depth, patch)
+    if num_heads is None:
+        raise ValueError(f"cannot infer the number of attention heads of a DiT with hidden {hidden}, depth "
+                         f"{depth}, patch {patch} from its weights: pass num_heads= (or config=DiTConfig(...))")
+    return DiTConfig(input_size=grid * patch, patch_size=patch, in_channels=in_ch, hidden_size=hidden, depth=depth,
+                     num_heads=num_heads, mlp_ratio=mlp_ratio, class_dropout_prob=0.1,
+                     num_classes=state["y_embedder.embedding_table.weight"].shape[0] - 1,
+                     learn_sigma=out_ch == 2 * in_ch)
+
+
+def load_dit(path: Union[str, Path], config: Union[None, str, DiTConfig] = None, num_heads: Optional[int] = None,
+             map_location: Union[str, torch.device] = "cpu") -> DiT:
+    """Load a DiT in eval mode (float32) from our ``<path>.safetensors`` + ``<path>.json`` pair (see
+    :func:`save_dit`) or from an official facebookresearch/DiT ``.pt`` state dict (e.g.
+    ``DiT-XL-2-256x256.pt``; read with ``torch.load(weights_only=True)``, config from the tensor shapes,
+    see :func:`dit_config_from_state_dict`). A training checkpoint ``{"model", "ema", ...}`` uses ``ema``.
+    ``model.checkpoint_info`` records the source and, for ours, the saved metadata.
+    """
+    path = Path(path)
+    if path.suffix in _OFFICIAL_SUFFIXES:
+        if not path.is_file():
+            raise _missing_model_error(path)
+        try:
+            state = torch.load(path, map_location=map_location, weights_only=True)
+        except Exception as e:  # pickled Python objects (e.g. an argparse Namespace in a training checkpoint)
+            raise ValueError(f"{path} is not a plain tensor state dict ({type(e).__name__}: {e}); save "
+                             "torch.load(...)['ema'] of a DiT training checkpoint as its own file") from e
+        if isinstance(state, dict) and isinstance(state.get("ema", state.get("model")), dict):
+            state = state.get("ema", state.get("model"))
+        if not isinstance(state, dict):
+            raise ValueError(f"{path} holds a {type(state).__name__}, not a state dict")
+        cfg = dit_config_from_state_dict(state, config, num_heads)
+        info = {"source": str(path), "format": "official-state-dict"}
+    else:
+        weights, meta = _pair(path)
+        if not (weights.is_file() and meta.is_file()):
+            raise _missing_model_error(path)
+        from safetensors.torch import load_file
+
+        doc = json.loads(meta.read_text())
+        if doc.get("format") != DIT_FORMAT:
+            raise ValueError(f"{meta} is not a tts DiT checkpoint (format {doc.get('format')!r}, expected {DIT_FORMAT!r})")
+        cfg = config if isinstance(config, DiTConfig) else DiTConfig(**doc["config"])
+        state = load_file(str(weights), device=str(map_location))
+        info = {"source": str(weights), "format": DIT_FORMAT, "metadata": doc.get("metadata", {})}
+    state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
+    model = DiT(cfg)
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise ValueError(f"{path} does not fit {cfg}: missing {missing[:5]}, unexpected {unexpected[:5]}")
+    model.checkpoint_info = info
+    return model.to(map_location).eval()
+
+
+# ----------------------------------------------------------------------------------- sampling
+DIT_BETAS = {"num_train_timesteps": 1000, "beta_start": 1e-4, "beta_end": 0.02, "beta_schedule": "linear"}
+
+
+def dit_scheduler(kind: str = "ddim", steps: int = 50, learn_sigma: bool = False):
+    """A diffusers scheduler with DiT's training schedule (linear betas 1e-4..0.02 over 1000 steps), epsilon
+    prediction, no clipping, ``steps`` evenly strided timesteps (as DiT's respacing).
+
+    ``"ddim"``: eta = 0, the final step goes to alpha_bar = 1 (deterministic given the initial noise).
+    ``"ddpm"``: ancestral steps, variance ``learned_range`` for models with learned sigma, else
+    ``fixed_small``.
+    """
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    if kind == "ddim":
+        from diffusers import DDIMScheduler
+
+        sched = DDIMScheduler(**DIT_BETAS, clip_sample=False, set_alpha_to_one=True, steps_offset=0,
+                              prediction_type="epsilon", timestep_spacing="leading")
+    elif kind == "ddpm":
+        from diffusers import DDPMScheduler
+
+        sched = DDPMScheduler(**DIT_BETAS, clip_sample=False, prediction_type="epsilon", timestep_spacing="leading",
+                              variance_type="learned_range" if learn_sigma else "fixed_small")
+    else:
+        raise ValueError(f"scheduler must be 'ddim' or 'ddpm' (or a diffusers scheduler), got {kind!r}")
+    sched.set_timesteps(steps)
+    return sched
+
+
+@torch.no_grad()
+def sample_dit(model: DiT, labels: Union[torch.Tensor, Sequence[int]], *, steps: int = 50, cfg_scale: float = 1.5,
+               generator: Optional[torch.Generator] = None, scheduler: Any = "ddim",
+               noise: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Class-conditional DiT sampling: images (or latents) in model space [B, C, H, W].
+
+    labels: [B] class ids. noise: the initial x_T [B, C, H, W] (else drawn from ``generator``).
+    cfg_scale: classifier-free guidance on the eps channels as in the official ``forward_with_cfg``; the
+    batch is [cond; uncond] (labels, then the null class ``num_classes``), so a tts plan or pruner sees
+    2B rows and may decide differently for the two halves. ``cfg_scale == 1`` runs the cond half only.
+    scheduler: ``"ddim"`` / ``"ddpm"`` (see :func:`dit_scheduler`) or a diffusers scheduler (its
+    ``set_timesteps(steps)`` is called). The condition is encoded once per call
+    (:meth:`DiT.condition_memory`, where a tts pruner reads it) and each step runs
+    ``model(x, t, y, c=memory[:, k])``. Learned-sigma outputs: the first C channels are eps.
+    """
+    p = model.pos_embed
+    device, dtype = p.device, p.dtype
+    C, size = model.in_channels, model.config.input_size
+    labels = torch.as_tensor(labels, device=device).long().reshape(-1)
+    B = labels.shape[0]
+    num_classes = model.y_embedder.num_classes
+    if B == 0:
+        raise ValueError("labels is empty")
+    if int(labels.min()) < 0 or int(labels.max()) >= num_classes:
+        raise ValueError(f"labels must lie in [0, {num_classes}), got {labels.min().item()}..{labels.max().item()}")
+    use_cfg = float(cfg_scale) != 1.0
+    if use_cfg and model.y_embedder.embedding_table.num_embeddings <= num_classes:
+        raise ValueError("this DiT has no null class (trained without class dropout): use cfg_scale=1")
+    if noise is None:
+        noise = torch.randn(B, C, size, size, generator=generator, device=generator.device if generator else "cpu")
+    if tuple(noise.shape) != (B, C, size, size):
+        raise ValueError(f"noise must be [{B}, {C}, {size}, {size}], got {tuple(noise.shape)}")
+    x = noise.to(device=device, dtype=dtype)
+    if isinstance(scheduler, str):
+        sched = dit_scheduler(scheduler, steps, learn_sigma=model.learn_sigma)
+    else:
+        sched = scheduler
+        sched.set_timesteps(steps)
+    learned_var = getattr(sched.config, "variance_type", None) in ("learned", "learned_range")
+    y = torch.cat([labels, torch.full_like(labels, num_classes)]) if use_cfg else labels
+    timesteps = sched.timesteps.to(device)
+    memory = model.condition_memory(timesteps, y)  # [rows, K, 1, hidden]; a tts pruner observes it here
+    rows = y.shape[0]
+    for k, t in enumerate(timesteps):
+        x_in = torch.cat([x, x]) if use_cfg else x
+        out = model(x_in, t.expand(rows), y, c=memory[:, k])
+        eps, rest = out[:, :C], out[:, C:]
+        if use_cfg:
+            cond, uncond = eps.chunk(2)
+            eps, rest = uncond + cfg_scale * (cond - uncond), rest[:B]
+        model_output = torch.cat([eps, rest], dim=1) if learned_var else eps
+        x = sched.step(model_output, t, x, generator=generator).prev_sample
+    return x
 
 
 # ---------------------------------------------------------------------------------- tts family
@@ -270,7 +553,8 @@ def _adapt(model: Any) -> Optional[Target]:
     names = ("x_embedder", "t_embedder", "y_embedder", "blocks", "final_layer")
     if not (isinstance(model, nn.Module) and all(hasattr(model, n) for n in names)):
         return None
-    return Target(denoiser=model, sites=discover_sites(model), supports_rollout=False,
+    condition = (model, "condition_memory") if callable(getattr(model, "condition_memory", None)) else None
+    return Target(denoiser=model, sites=discover_sites(model), supports_rollout=False, condition=condition,
                   description=f"DiT ({type(model).__name__})")
 
 

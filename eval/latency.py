@@ -63,6 +63,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--plan", default="uniform:0.93:timestep", help="for --method static")
     ap.add_argument("--pruner", type=Path, default=None)
     ap.add_argument("--sparsity", type=float, default=None, help="tts exact-budget mode")
+    ap.add_argument("--forecast", type=int, default=0, help="TaylorSeer-style forecast order for timestep reuse")
     ap.add_argument("--batch", type=int, nargs="+", default=[1, 28])
     ap.add_argument("--trials", type=int, default=5)
     ap.add_argument("--frames", type=int, default=4, help="timed calls per trial (after the dense frame 0)")

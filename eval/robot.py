@@ -59,6 +59,12 @@ def noise_seed(episode_seed: int, call: int) -> int:
 
 
 def method_label(args) -> str:
+    label = _base_label(args)
+    forecast = getattr(args, "forecast", 0)
+    return label + (f"-taylor{forecast}" if forecast else "")
+
+
+def _base_label(args) -> str:
     if args.method == "dense":
         return "dense"
     if args.method == "ddim":
@@ -73,13 +79,18 @@ def method_label(args) -> str:
 
 def accelerate(policy, args) -> "tts.Accelerator":
     """The method of ``args`` installed on ``policy`` (dense: a dense plan, bit-identical, gives MACs)."""
+    forecast = getattr(args, "forecast", 0)
     if args.method == "tts":
         pruner = tts.load_pruner(args.pruner)
-        return tts.accelerate(policy, pruner.config.directions, pruner=pruner, sparsity=args.sparsity)
+        trained = int(getattr(pruner, "metadata", {}).get("forecast", 0) or 0)
+        if trained != forecast:
+            raise SystemExit(f"{args.pruner} was trained with --forecast {trained}; evaluate it with the same")
+        return tts.accelerate(policy, pruner.config.directions, pruner=pruner, sparsity=args.sparsity,
+                              forecast=forecast)
     if args.method == "ddim":
         policy.set_sampler("ddim", args.steps)
     directions, plan = parse_plan(args.plan if args.method == "static" else "dense")
-    return tts.accelerate(policy, directions, plan=plan)
+    return tts.accelerate(policy, directions, plan=plan, forecast=forecast if "timestep" in directions else 0)
 
 
 def run_wave(policy, envs, seeds, task, generator, record: bool = False,
@@ -148,6 +159,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--pruner", type=Path, default=None, help="for --method tts: a trained pruner (eval/train_pruner.py)")
     ap.add_argument("--sparsity", type=float, default=None,
                     help="for --method tts: exact-budget mode at this sparsity (default: the pruner's argmax)")
+    ap.add_argument("--forecast", type=int, default=0,
+                    help="TaylorSeer-style forecast order for timestep reuse (0: plain reuse)")
     ap.add_argument("--horizon", type=int, default=None, help="env steps per episode (default: the task's; for smoke tests)")
     ap.add_argument("--episodes", type=int, default=50)
     ap.add_argument("--seed", type=int, default=100000, help="first test seed")

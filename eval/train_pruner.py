@@ -113,6 +113,9 @@ def main(argv=None) -> None:
     ap.add_argument("--static", action="store_true",
                     help="train a static router instead (Learning-to-Cache-style baseline: one decision per "
                          "step x branch, not per observation)")
+    ap.add_argument("--forecast", type=int, default=0,
+                    help="train (and validate) with TaylorSeer-style forecasting timestep reuse of this order; "
+                         "use the same --forecast at test time")
     ap.add_argument("--prior", type=Path, default=None,
                     help="a searched static schedule (eval/search_static.py JSON) whose decisions become fixed "
                          "prior logits; the pruner (head zero-initialised) learns per-observation corrections")
@@ -174,7 +177,7 @@ def main(argv=None) -> None:
     t_start, train_seconds = time.time(), (history[-1].get("train_seconds", 0.0) if history else 0.0)
     for epoch in range(epoch, args.epochs):
         pruner.train()
-        acc = tts.accelerate(policy, directions, plan=train_plan)
+        acc = tts.accelerate(policy, directions, plan=train_plan, forecast=args.forecast)
         stats = []
         for group in tqdm(episode_groups(train, args.batch, rng), desc=f"epoch {epoch + 1}/{args.epochs}",
                           total=groups_per_epoch):
@@ -214,7 +217,7 @@ def main(argv=None) -> None:
 def validate(policy, pruner, val, directions, args) -> list[dict]:
     """The test-time rule (``--val-mode``) on the validation episodes, paired or fixed noise."""
     plan = RecordingPlan(pruner, args.val_mode, args.sparsity)
-    with tts.accelerate(policy, directions, plan=plan):
+    with tts.accelerate(policy, directions, plan=plan, forecast=args.forecast):
         return [run_group(policy, plan, g, args, torch.Generator().manual_seed(args.seed + 7), None)
                 for g in episode_groups(val, args.batch, None)]
 

@@ -74,6 +74,7 @@ def accelerate(
     parallel: bool = True,
     blocks: BlocksArg = None,
     fast_dense: bool = True,
+    forecast: int = 0,
 ) -> Accelerator:
     """Install test-time sparsity on ``model`` and return the :class:`Accelerator`.
 
@@ -87,6 +88,8 @@ def accelerate(
         ``sparsity`` is given).
     parallel: run the pruner on a worker thread / side CUDA stream while step 0 runs.
     blocks: ``{glob over module names: BlockSpec}`` for blocks tts does not recognise.
+    forecast: order O of a TaylorSeer-style forecast for timestep reuse (0: reuse the cached output
+        as is; 1: extrapolate linearly from the last two computes; ...).
     fast_dense: when a block computes every branch for every sample and nothing needs caching,
         call the block's own forward (keeps PyTorch fast paths, bit-identical outputs).
     """
@@ -118,4 +121,4 @@ def accelerate(
             if not dirs:
                 raise ValueError("sparsity > 0 needs at least one direction to reuse from")
             plan = plans.uniform(sparsity, "timestep" if "timestep" in dirs else dirs[0])
-    return Accelerator(target, dirs, plan, fast_dense=fast_dense)
+    return Accelerator(target, dirs, plan, fast_dense=fast_dense, forecast=forecast)

@@ -10,20 +10,108 @@
 Caches hold the branch output *before* the residual add, for the whole batch, and are updated only
 on compute. Writes store references (no copy) when every sample computed, and out-of-place
 ``index_copy`` when only some samples did, so a tensor shared by several slots is never mutated.
+
+``forecast=O`` (O >= 1) turns timestep reuse into a TaylorSeer-style forecast (Liu et al. 2025,
+"From Reusing to Forecasting"): besides the last computed output, each timestep slot keeps O
+finite-difference derivatives along the step index (D_{i+1} = (D_i - D_i,previous) / steps between
+the two computes), and a reuse at step k returns sum_i D_i (k - k_last)^i / i!. Steps are tracked
+per sample, so samples that computed at different steps forecast from their own history.
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence
+import math
+from typing import Optional, Sequence, Union
 
 import torch
 
 from .plans import FORWARD, ROLLOUT, TIMESTEP
 
-__all__ = ["ReuseCache"]
+__all__ = ["ReuseCache", "TaylorSlot"]
+
+
+Steps = Union[int, torch.Tensor]  # step of the last compute: one int for the whole batch, or [B]
+
+
+class TaylorSlot:
+    """Last computed output of one branch plus up to ``order`` step-derivatives (forecast reuse).
+
+    ``step`` and ``valid`` (how many of ``derivs`` a sample has history for) are ints while every
+    sample computed at the same steps, per-sample [B] tensors once they differ."""
+
+    __slots__ = ("derivs", "step", "valid", "dim")
+
+    def __init__(self, d: torch.Tensor, step: Steps, dim: int, valid: Steps = 1):
+        self.derivs: list[torch.Tensor] = [d]
+        self.step: Steps = step
+        self.valid: Steps = valid
+        self.dim = dim
+
+    def _rows_shape(self, like: torch.Tensor, n: int) -> list[int]:
+        shape = [1] * like.dim()
+        shape[self.dim] = n
+        return shape
+
+    def _vector(self, x: Steps, n: int, device) -> torch.Tensor:
+        return x if torch.is_tensor(x) else torch.full((n,), int(x), dtype=torch.long, device=device)
+
+    def update(self, d: torch.Tensor, step: int, order: int) -> "TaylorSlot":
+        """All rows computed ``d`` at ``step``."""
+        n = d.shape[self.dim]
+        return self.update_rows(torch.arange(n, device=d.device), d, step, order, all_rows=True)
+
+    def update_rows(self, rows: torch.Tensor, d_rows: torch.Tensor, step: int, order: int,
+                    all_rows: bool = False) -> "TaylorSlot":
+        """``rows`` computed ``d_rows`` at ``step``; the other rows keep their history."""
+        old = self.derivs[0]
+        n = old.shape[self.dim]
+        uniform = all_rows and not torch.is_tensor(self.step) and not torch.is_tensor(self.valid)
+        if uniform:  # the common case: plain tensors, no per-row bookkeeping
+            out = TaylorSlot(d_rows, step, self.dim, min(self.valid + 1, order + 1))
+            gap = float(step - self.step)
+            for i in range(min(order, self.valid)):
+                out.derivs.append((out.derivs[i] - self.derivs[i]) / gap)
+            return out
+        last = self._vector(self.step, n, old.device)
+        valid = self._vector(self.valid, n, old.device)
+        v_rows = valid.index_select(0, rows)
+        gap = (step - last.index_select(0, rows)).clamp_min(1).to(old.dtype)
+        gap = gap.reshape(self._rows_shape(old, len(rows)))
+        out = TaylorSlot(old.index_copy(self.dim, rows, d_rows),
+                         last.index_copy(0, rows, torch.full_like(rows, step)), self.dim,
+                         valid.index_copy(0, rows, (v_rows + 1).clamp_max(order + 1)))
+        new_i = d_rows
+        for i in range(min(order, int(valid.max()))):
+            known = (v_rows > i).to(old.dtype).reshape(self._rows_shape(old, len(rows)))
+            new_next = (new_i - self.derivs[i].index_select(self.dim, rows)) / gap * known
+            base = self.derivs[i + 1] if i + 1 < len(self.derivs) else torch.zeros_like(old)
+            out.derivs.append(base.index_copy(self.dim, rows, new_next))
+            new_i = new_next
+        return out
+
+    def forecast(self, step: int) -> torch.Tensor:
+        base = self.derivs[0]
+        if len(self.derivs) == 1:
+            return base
+        if not torch.is_tensor(self.step):
+            h = float(step - self.step)
+            out = base
+            for i, d in enumerate(self.derivs[1:], 1):
+                out = torch.add(out, d, alpha=h ** i / math.factorial(i))
+            return out
+        h = (step - self.step).to(base.dtype).reshape(self._rows_shape(base, base.shape[self.dim]))
+        out = base
+        for i, d in enumerate(self.derivs[1:], 1):
+            out = out + d * (h ** i / math.factorial(i))
+        return out
 
 
 class ReuseCache:
-    def __init__(self, kind_of_branch: Sequence[int], num_kinds: int, directions: Sequence[str]):
+    def __init__(self, kind_of_branch: Sequence[int], num_kinds: int, directions: Sequence[str],
+                 forecast: int = 0, batch_dims: Optional[Sequence[int]] = None):
+        if int(forecast) < 0:
+            raise ValueError(f"forecast order must be >= 0, got {forecast}")
+        self.forecast = int(forecast)
+        self.batch_dims = list(batch_dims) if batch_dims is not None else [0] * len(kind_of_branch)
         self.kind_of_branch = list(kind_of_branch)
         self.num_branches = len(self.kind_of_branch)
         self.num_kinds = num_kinds
@@ -31,7 +119,7 @@ class ReuseCache:
         self.use_timestep = "timestep" in directions
         self.use_rollout = "rollout" in directions
         self.forward: list[Optional[torch.Tensor]] = [None] * num_kinds
-        self.timestep: list[Optional[torch.Tensor]] = [None] * self.num_branches
+        self.timestep: list = [None] * self.num_branches  # tensors, or TaylorSlots when forecasting
         self.rollout: list[list[Optional[torch.Tensor]]] = []
 
     # -- lifecycle -------------------------------------------------------------------------------
@@ -53,7 +141,8 @@ class ReuseCache:
         if code == FORWARD:
             return self.forward[self.kind_of_branch[b]]
         if code == TIMESTEP:
-            return self.timestep[b]
+            slot = self.timestep[b]
+            return slot.forecast(k) if self.forecast and slot is not None else slot
         if code == ROLLOUT:
             return self.rollout[k][b] if k < len(self.rollout) else None
         raise ValueError(f"not a reuse code: {code}")
@@ -69,7 +158,12 @@ class ReuseCache:
         if self.use_forward:
             self.forward[self.kind_of_branch[b]] = d
         if self.use_timestep:
-            self.timestep[b] = d
+            if self.forecast:
+                slot = self.timestep[b]
+                self.timestep[b] = (TaylorSlot(d, k, self.batch_dims[b]) if slot is None
+                                    else slot.update(d, k, self.forecast))
+            else:
+                self.timestep[b] = d
         if self.use_rollout:
             self._rollout_row(k)[b] = d
 
@@ -88,7 +182,13 @@ class ReuseCache:
             kind = self.kind_of_branch[b]
             self.forward[kind] = merged(self.forward[kind])
         if self.use_timestep:
-            self.timestep[b] = merged(self.timestep[b])
+            if self.forecast:
+                slot = self.timestep[b]
+                if slot is None:
+                    merged(None)  # raises: never happens (step 0 computes every row)
+                self.timestep[b] = slot.update_rows(rows, d_rows, k, self.forecast)
+            else:
+                self.timestep[b] = merged(self.timestep[b])
         if self.use_rollout:
             # A slot the previous call never filled (it ran fewer steps) stays empty: a partial
             # entry would be wrong for the other samples; the next call then computes (k, b).

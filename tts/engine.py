@@ -97,7 +97,8 @@ def _select_rows(a: Any, dim: int, rows: torch.Tensor, batch: int) -> Any:
 class Accelerator:
     """Installed by :func:`tts.accelerate`. See the README for the user-facing API."""
 
-    def __init__(self, target: Target, directions: Sequence[str], plan: Plan, fast_dense: bool = True):
+    def __init__(self, target: Target, directions: Sequence[str], plan: Plan, fast_dense: bool = True,
+                 forecast: int = 0):
         self.target = target
         self.directions = tuple(directions)
         self.plan = plan
@@ -121,7 +122,10 @@ class Accelerator:
                 self._batch_dim.append(spec.batch_dim)
             self.sites.append(site)
         self.num_branches = len(kind_of_branch)
-        self.cache = ReuseCache(kind_of_branch, len(kinds), self.directions)
+        if forecast and "timestep" not in self.directions:
+            raise ValueError("forecast= applies to the timestep direction, which is not enabled")
+        self.cache = ReuseCache(kind_of_branch, len(kinds), self.directions, forecast=forecast,
+                                batch_dims=self._batch_dim)
         self.plan.bind(self.num_branches, self.branch_kinds)
         allowed = {COMPUTE} | {DIRECTIONS[d] for d in self.directions}
         bad = sorted(set(self.plan.uses) - allowed)

@@ -85,11 +85,17 @@ class Summary:
         return dense, realised
 
     def timing(self, calls: Optional[Sequence[CallRecord]] = None) -> dict[str, float]:
-        """Median seconds per call of each recorded phase (encoder, pruner, wait, decoder, total)
-        over ``calls`` (default: the calls that were not dense first calls of an episode)."""
+        """Median seconds per call of each recorded phase (encoder, pruner, wait, decoder,
+        scheduler_and_rest, total) over ``calls`` (default: the calls that were not dense first calls of an episode)."""
         calls = [c for c in self.calls if not c.dense] if calls is None else calls
-        keys = sorted({k for c in calls for k in c.timing})
-        return {k: float(torch.tensor([c.timing[k] for c in calls if k in c.timing]).median()) for k in keys}
+        rows = []
+        for c in calls:
+            t = dict(c.timing)
+            if "total" in t:  # the sampling loop outside the denoiser: scheduler steps, normalisation, noise
+                t["scheduler_and_rest"] = t["total"] - sum(t.get(k, 0.0) for k in ("encoder", "wait", "decoder"))
+            rows.append(t)
+        keys = sorted({k for t in rows for k in t})
+        return {k: float(torch.tensor([t[k] for t in rows if k in t]).median()) for k in keys}
 
     def to_dict(self) -> dict:
         last = self.calls[-1] if self.calls else None
