@@ -442,10 +442,9 @@ def dit_scheduler(kind: str = "ddim", steps: int = 50, learn_sigma: bool = False
     return sched
 
 
-@torch.no_grad()
 def sample_dit(model: DiT, labels: Union[torch.Tensor, Sequence[int]], *, steps: int = 50, cfg_scale: float = 1.5,
                generator: Optional[torch.Generator] = None, scheduler: Any = "ddim",
-               noise: Optional[torch.Tensor] = None) -> torch.Tensor:
+               noise: Optional[torch.Tensor] = None, enable_grad: bool = False) -> torch.Tensor:
     """Class-conditional DiT sampling: images (or latents) in model space [B, C, H, W].
 
     labels: [B] class ids. noise: the initial x_T [B, C, H, W] (else drawn from ``generator``).
@@ -456,7 +455,13 @@ def sample_dit(model: DiT, labels: Union[torch.Tensor, Sequence[int]], *, steps:
     ``set_timesteps(steps)`` is called). The condition is encoded once per call
     (:meth:`DiT.condition_memory`, where a tts pruner reads it) and each step runs
     ``model(x, t, y, c=memory[:, k])``. Learned-sigma outputs: the first C channels are eps.
+    enable_grad: keep the autograd graph (pruner training; the model's weights stay frozen).
     """
+    with torch.set_grad_enabled(enable_grad):
+        return _sample_dit(model, labels, steps, cfg_scale, generator, scheduler, noise)
+
+
+def _sample_dit(model, labels, steps, cfg_scale, generator, scheduler, noise) -> torch.Tensor:
     p = model.pos_embed
     device, dtype = p.device, p.dtype
     C, size = model.in_channels, model.config.input_size

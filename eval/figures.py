@@ -99,7 +99,6 @@ def similarity(args) -> Path:
     eps = [{k: v[:n_frames] if k in KEYS else v for k, v in e.items()} for e in eps]
     outs = record_branch_outputs(policy, lambda: replay(policy, eps))  # [call][k][b] -> [E, H, D]
     K, nb = len(outs[0]), len(outs[0][0])
-    kinds = [b % 3 for b in range(nb)]
     sims = {name: np.full((K, nb), np.nan) for name in ("forward", "timestep", "rollout")}
     for k in range(K):
         for b in range(nb):

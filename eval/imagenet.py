@@ -1,13 +1,16 @@
 """Class-conditional DiT sampling, dense or accelerated, into an ADM-compatible ``.npz`` (+ FID/sFID).
 
-    accelerate launch [--num_processes N] eval/imagenet.py --model PATH --method dense|fora|uniform|tts \
+    accelerate launch [--num_processes N] eval/imagenet.py --model PATH --method dense|fora|taylorseer|uniform|static|tts \
         [--sparsity 0.8] [--steps 50] [--cfg 1.5] [--num-samples 2000] [--out samples.npz] [--pruner PATH] \
         [--fora-n 5] [--ref REF] [--seed 0] [--batch 64]
 
 Methods (all in the tts engine; ``dense`` is the untouched model):
   dense    the model as is
   fora     ``tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(N, "timestep"))`` (FORA-style)
+  taylorseer  FORA's interval with an order-``--taylor-order`` Taylor forecast of each reused branch
+           (``forecast=O``, TaylorSeer-style)
   uniform  ``tts.plans.uniform(sparsity, "timestep")``: ``--sparsity`` of the (step, branch) decisions reuse
+  static   a searched schedule (``--plan``, eval/search_static.py --model): BAC-style
   tts      a learned pruner (``--pruner``, see tts.Pruner): argmax decisions, or with ``--sparsity`` exactly
            that fraction reused per sample (exact-budget mode); it reads the DiT's condition memory
            (:meth:`DiT.condition_memory`, encoded once per sampling call)
@@ -35,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import sys
 import time
@@ -52,7 +56,7 @@ import tts  # noqa: E402
 from tts.adapters.dit import DiT, load_dit, sample_dit  # noqa: E402
 from tts.io import atomic_path  # noqa: E402
 
-METHODS = ("dense", "fora", "uniform", "tts")
+METHODS = ("dense", "fora", "taylorseer", "uniform", "static", "tts")
 SD_VAE_SCALE = 0.18215  # latent scale of the Stable Diffusion VAE that DiT was trained with
 
 
@@ -102,6 +106,12 @@ def build_accelerator(model: DiT, args: argparse.Namespace) -> Optional["tts.Acc
         return None
     if args.method == "fora":
         return tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(args.fora_n, "timestep"))
+    if args.method == "taylorseer":  # FORA's interval with an order-O Taylor forecast of every reused branch
+        return tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(args.fora_n, "timestep"),
+                              forecast=args.taylor_order)
+    if args.method == "static":  # a searched schedule (eval/search_static.py --model ...)
+        doc = json.loads(Path(args.plan).read_text())
+        return tts.accelerate(model, tuple(doc["directions"]), plan=tts.plans.from_tensor(doc["grid"]))
     if args.method == "uniform":
         return tts.accelerate(model, ("timestep",), plan=tts.plans.uniform(args.sparsity, "timestep"))
     pruner = tts.load_pruner(args.pruner)
@@ -116,11 +126,13 @@ def check_args(args: argparse.Namespace) -> None:
         raise ValueError("--method uniform needs --sparsity")
     if args.method == "tts" and not args.pruner:
         raise ValueError("--method tts needs --pruner PATH (a trained tts.Pruner)")
-    if args.method in ("dense", "fora") and args.sparsity is not None:
+    if args.method == "static" and not args.plan:
+        raise ValueError("--method static needs --plan SCHEDULE.json")
+    if args.method in ("dense", "fora", "taylorseer", "static") and args.sparsity is not None:
         raise ValueError(f"--sparsity does not apply to --method {args.method}")
     if args.pruner and args.method != "tts":
         raise ValueError("--pruner is only used by --method tts")
-    if args.method == "fora" and args.fora_n < 1:
+    if args.method in ("fora", "taylorseer") and args.fora_n < 1:
         raise ValueError("--fora-n must be >= 1")
     for name in ("num_samples", "batch", "steps"):
         if getattr(args, name) < 1:
@@ -185,7 +197,9 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     ap.add_argument("--sparsity", type=float, default=None,
                     help="uniform: fraction of reused decisions; tts: exact-budget mode (default: argmax)")
     ap.add_argument("--pruner", default=None, help="trained tts.Pruner (<path>.safetensors + .json), --method tts")
-    ap.add_argument("--fora-n", type=int, default=5, help="fora: compute every N-th step")
+    ap.add_argument("--fora-n", type=int, default=5, help="fora / taylorseer: compute every N-th step")
+    ap.add_argument("--taylor-order", type=int, default=1, help="taylorseer: forecast order O")
+    ap.add_argument("--plan", default=None, help="static: a searched schedule JSON (eval/search_static.py)")
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--cfg", type=float, default=1.5, help="classifier-free guidance scale (1 = none)")
     ap.add_argument("--scheduler", choices=("ddim", "ddpm"), default="ddim",

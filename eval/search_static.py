@@ -2,6 +2,8 @@
 
     python eval/search_static.py --checkpoint checkpoints/lift_dpt --trajectories data/trajectories/lift.pt \
         --sparsity 0.93 --out results/schedules/lift_bac_0.93.json
+    python eval/search_static.py --dit checkpoints/digits_dit --sparsity 0.8 --steps 50 --cfg 1.5 \
+        --out results/schedules/digits_bac_0.8.json         # a DiT: calibration samples (seed 1, not the eval's 0)
 
 Runs dense calls on ``--calls`` recorded observation windows of the *training* trajectories (the
 first ``--episodes``; never the test seeds), measures per branch how much its output changes between
@@ -27,18 +29,8 @@ from tts.adapters.dp_policy import load_policy  # noqa: E402
 from tts.static_search import reuse_errors, search_schedule  # noqa: E402
 
 
-def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--checkpoint", type=Path, required=True)
-    ap.add_argument("--trajectories", type=Path, required=True)
-    ap.add_argument("--sparsity", type=float, nargs="+", default=[0.93])
-    ap.add_argument("--episodes", type=int, default=32, help="calibration episodes (from the start of the file)")
-    ap.add_argument("--calls", type=int, default=64, help="calibration policy calls (spread over the episodes)")
-    ap.add_argument("--batch", type=int, default=16)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, required=True, help="output JSON; with several sparsities, one file each "
-                    "named <out stem>_<sparsity>.json")
-    args = parse_args(ap, argv)
+def policy_calibration(args):
+    """Dense calls of the policy on recorded observation windows of the training trajectories."""
     episodes, _ = load_trajectories(args.trajectories)
     windows = np.concatenate([e["obs"] for e in episodes[:args.episodes]])
     rng = np.random.default_rng(args.seed)
@@ -50,7 +42,50 @@ def main(argv=None) -> dict:
             obs = obs_dict(policy, torch.as_tensor(windows[pick[s:s + args.batch]]))
             policy.predict_action(obs, generator=torch.Generator().manual_seed(args.seed + s))
 
-    errors = reuse_errors(policy, sample)
+    return policy, sample
+
+
+def dit_calibration(args):
+    """``--calls`` dense DDIM samples of the DiT (classes round-robin, noise seed ``--seed + 1``, so
+    never the evaluation's samples, which use seed 0)."""
+    from tts.adapters.dit import load_dit, sample_dit
+
+    model = load_dit(args.dit)
+    n_cls = model.y_embedder.num_classes
+
+    def sample():
+        g = torch.Generator().manual_seed(args.seed + 1)
+        for s in range(0, args.calls, args.batch):
+            labels = torch.arange(s, min(s + args.batch, args.calls)) % n_cls
+            sample_dit(model, labels, steps=args.steps, cfg_scale=args.cfg, generator=g)
+
+    return model, sample
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", type=Path, default=None, help="a Diffusion Policy (with --trajectories)")
+    ap.add_argument("--trajectories", type=Path, default=None)
+    ap.add_argument("--dit", type=Path, default=None, help="a class-conditional DiT instead (tts.adapters.dit.load_dit)")
+    ap.add_argument("--steps", type=int, default=50, help="--dit: DDIM steps")
+    ap.add_argument("--cfg", type=float, default=1.5, help="--dit: guidance scale")
+    ap.add_argument("--sparsity", type=float, nargs="+", default=[0.93])
+    ap.add_argument("--episodes", type=int, default=32, help="calibration episodes (from the start of the file)")
+    ap.add_argument("--calls", type=int, default=64, help="calibration policy calls (spread over the episodes)")
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, required=True, help="output JSON; with several sparsities, one file each "
+                    "named <out stem>_<sparsity>.json")
+    args = parse_args(ap, argv)
+    if (args.dit is None) == (args.checkpoint is None):
+        raise SystemExit("give either --checkpoint (with --trajectories) or --dit")
+    if args.dit is not None:
+        model, sample = dit_calibration(args)
+    else:
+        if args.trajectories is None:
+            raise SystemExit("--checkpoint needs --trajectories (calibration observations)")
+        model, sample = policy_calibration(args)
+    errors = reuse_errors(model, sample)
     written = {}
     for rho in args.sparsity:
         grid = search_schedule(errors, rho)
@@ -58,8 +93,8 @@ def main(argv=None) -> dict:
         doc = {
             "provenance": provenance(seeds={"calibration": args.seed}),
             "method": "BAC-style per-branch DP on activation similarity (timestep reuse)",
-            "checkpoint": str(args.checkpoint), "trajectories": str(args.trajectories),
-            "calibration_episodes": args.episodes, "calibration_calls": int(len(pick)),
+            "model": str(args.dit or args.checkpoint), "trajectories": str(args.trajectories),
+            "calibration_episodes": args.episodes, "calibration_calls": args.calls,
             "sparsity": rho, "realised_sparsity": float((grid != 0).float().mean()),
             "directions": ["timestep"],
             "grid": ["".join("CFTR"[c] for c in row.tolist()) for row in grid],

@@ -16,10 +16,8 @@ saved every epoch under ``runs/<out name>/`` and ``--resume`` continues from it.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -28,12 +26,12 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from collect_trajectories import load_trajectories  # noqa: E402
-from common import provenance, parse_args  # noqa: E402
+from common import parse_args  # noqa: E402
+from pruner_fit import RecordingPlan, add_training_args, fit, read_grid  # noqa: E402
 
 import tts  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
-from tts.io import atomic_path  # noqa: E402
-from tts.pruner import PrunerConfig, PrunerPlan, build_pruner, distill_schedule, pruner_loss, save_pruner  # noqa: E402
+from tts.pruner import PrunerConfig, PrunerPlan, build_pruner, distill_schedule, pruner_loss  # noqa: E402
 from tts.trajectories import episode_groups, lockstep_frames, split_episodes  # noqa: E402
 
 KEYS = ("obs", "action_pred", "noise_seed")
@@ -96,37 +94,18 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--trajectories", type=Path, required=True)
     ap.add_argument("--checkpoint", type=Path, required=True, help="the (frozen) policy")
-    ap.add_argument("--out", type=Path, required=True, help="pruner path without suffix")
-    ap.add_argument("--directions", default="forward,timestep,rollout")
-    ap.add_argument("--sparsity", type=float, default=0.93)
-    ap.add_argument("--lam", type=float, default=1.0, help="weight of the sparsity term")
-    ap.add_argument("--epochs", type=int, default=6)
-    ap.add_argument("--batch", type=int, default=16, help="episodes per lockstep group")
+    add_training_args(ap, sparsity=0.93, directions="forward,timestep,rollout", batch=16)
     ap.add_argument("--n-train", type=int, default=32)
     ap.add_argument("--n-val", type=int, default=16)
-    ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--weight-decay", type=float, default=1e-4)
-    ap.add_argument("--hidden", type=int, default=64)
     ap.add_argument("--paired", action="store_true", help="replay the dense call's noise (paired target)")
     ap.add_argument("--loss-space", choices=["raw", "normalized"], default="raw",
                     help="L1 on raw actions (the paper) or on the policy's normalised actions")
     ap.add_argument("--static", action="store_true",
                     help="train a static router instead (Learning-to-Cache-style baseline: one decision per "
                          "step x branch, not per observation)")
-    ap.add_argument("--forecast", type=int, default=0,
-                    help="train (and validate) with TaylorSeer-style forecasting timestep reuse of this order; "
-                         "use the same --forecast at test time")
-    ap.add_argument("--prior", type=Path, default=None,
-                    help="a searched static schedule (eval/search_static.py JSON) whose decisions become fixed "
-                         "prior logits; the pruner (head zero-initialised) learns per-observation corrections")
     ap.add_argument("--init-schedule", type=Path, default=None,
                     help="warm start: fit the pruner to a searched static schedule (eval/search_static.py JSON) "
                          "by cross-entropy before the straight-through training")
-    ap.add_argument("--val-mode", choices=["argmax", "budget"], default="argmax",
-                    help="test-time rule used for validation and checkpoint selection (budget: exactly --sparsity)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--run-dir", type=Path, default=None)
-    ap.add_argument("--resume", action="store_true")
     args = parse_args(ap, argv)
     tts.plans.check_sparsity(args.sparsity)
     directions = tts.plans.check_directions(args.directions.split(","))
@@ -136,110 +115,40 @@ def main(argv=None) -> None:
     train, val = split_episodes(episodes, args.n_train, args.n_val)
     policy = load_policy(args.checkpoint).requires_grad_(False)
     cfg = policy.model.config
+    K = policy.cfg.num_inference_steps
     pruner = build_pruner(PrunerConfig(
         memory_dim=cfg.n_emb, num_branches=3 * cfg.n_layer, directions=directions, hidden=args.hidden,
-        kind="static" if args.static else "transformer", steps=policy.cfg.num_inference_steps,
-        prior=args.prior is not None))
+        kind="static" if args.static else "transformer", steps=K, prior=args.prior is not None))
     if args.prior is not None:
-        pruner.set_prior(tts.plans.from_tensor(json.loads(args.prior.read_text())["grid"]).decisions[0])
+        pruner.set_prior(read_grid(args.prior))
     train_plan = PrunerPlan(pruner, mode="ste")
-    opt = torch.optim.AdamW(pruner.parameters(), lr=args.lr, weight_decay=args.weight_decay)
-    groups_per_epoch = math.ceil(len(train) / args.batch)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda e: min(1.0, (e + 1) / max(1, args.epochs // 5)) * 0.5 * (1 + math.cos(math.pi * e / args.epochs)))
-    run_dir = args.run_dir or Path("runs") / args.out.name
-    state_path = run_dir / "pruner_state.pt"
-    epoch, history, best, best_state = 0, [], None, None
-    if args.resume and state_path.exists():
-        st = torch.load(state_path, map_location="cpu", weights_only=False)
-        pruner.load_state_dict(st["pruner"])
-        opt.load_state_dict(st["opt"])
-        sched.load_state_dict(st["sched"])
-        epoch, history, best, best_state = st["epoch"], st["history"], st["best"], st["best_state"]
-        print(f"resumed after epoch {epoch}")
-    if epoch == 0 and (args.init_schedule is not None or args.prior is not None):
-        row = {"epoch": 0}
-        if args.init_schedule is not None:
-            grid = tts.plans.from_tensor(json.loads(args.init_schedule.read_text())["grid"]).decisions[0]
-            windows = torch.as_tensor(np.concatenate([e["obs"] for e in train]))
-            with torch.no_grad():
-                cond = policy.obs_normalizer.normalize(windows)[:, -policy.cfg.n_obs_steps:]
-                memory = policy.model.condition_memory(policy.scheduler.timesteps, cond)
-            row["init_schedule_agreement"] = distill_schedule(pruner, memory, grid, batch=16, seed=args.seed)
-        v = validate(policy, pruner, val, directions, args)
-        row.update({f"val_{k}": _mean(v, k) for k in ("l1", "sparsity")})
-        row["val_score"] = row["val_l1"] + args.lam * abs(row["val_sparsity"] - args.sparsity)
-        print(" ".join(f"{k}={v:.4g}" for k, v in row.items()))
-        history.append(row)
-        best, best_state = row, {k: v.clone() for k, v in pruner.state_dict().items()}
-    rng = np.random.default_rng(args.seed + epoch)
-    noise_rng = torch.Generator().manual_seed(args.seed + 1000 * epoch)
-    t_start, train_seconds = time.time(), (history[-1].get("train_seconds", 0.0) if history else 0.0)
-    for epoch in range(epoch, args.epochs):
-        pruner.train()
-        acc = tts.accelerate(policy, directions, plan=train_plan, forecast=args.forecast)
-        stats = []
-        for group in tqdm(episode_groups(train, args.batch, rng), desc=f"epoch {epoch + 1}/{args.epochs}",
-                          total=groups_per_epoch):
-            stats.append(run_group(policy, train_plan, group, args, noise_rng, opt))
-        acc.remove()
-        lr = opt.param_groups[0]["lr"]
-        sched.step()
-        v = validate(policy, pruner, val, directions, args)
-        row = {"epoch": epoch + 1, **{f"train_{k}": _mean(stats, k) for k in ("l1", "sparsity")},
-               **{f"val_{k}": _mean(v, k) for k in ("l1", "sparsity")}, "lr": lr}
-        row["val_score"] = row["val_l1"] + args.lam * abs(row["val_sparsity"] - args.sparsity)
-        train_seconds += time.time() - t_start
-        t_start = time.time()
-        row["train_seconds"] = train_seconds
-        history.append(row)
-        print(" ".join(f"{k}={v:.4g}" for k, v in row.items()))
-        if best is None or row["val_score"] < best["val_score"]:
-            best, best_state = row, {k: v.clone() for k, v in pruner.state_dict().items()}
-        with atomic_path(state_path) as tmp:
-            torch.save({"pruner": pruner.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                        "epoch": epoch + 1, "history": history, "best": best, "best_state": best_state}, tmp)
-        # the best epoch's weights, with the history so far: a usable checkpoint after every epoch
-        meta = provenance(seeds={"train": args.seed})
-        meta.update(vars_as_json(args), trajectories=str(args.trajectories), n_train_episodes=len(train),
-                    n_val_episodes=len(val), policy=str(args.checkpoint), best_epoch=best, history=history,
-                    train_seconds=train_seconds,
-                    pruner_macs_per_call=pruner.macs(policy.cfg.num_inference_steps, 1 + policy.cfg.n_obs_steps),
-                    trajectory_collection=traj_meta.get("command"))
-        current = {k: v.clone() for k, v in pruner.state_dict().items()}
-        pruner.load_state_dict(best_state)
-        save_pruner(pruner, args.out, metadata=meta)
-        pruner.load_state_dict(current)
-    print(f"best epoch {best['epoch']}: val L1 {best['val_l1']:.4f}, val sparsity {best['val_sparsity']:.3f}; "
-          f"wrote {args.out}.safetensors/.json")
 
+    def train_epoch(opt, rng, noise_rng, epoch):
+        with tts.accelerate(policy, directions, plan=train_plan, forecast=args.forecast):
+            return [run_group(policy, train_plan, group, args, noise_rng, opt)
+                    for group in tqdm(episode_groups(train, args.batch, rng), desc=f"epoch {epoch + 1}/{args.epochs}",
+                                      total=math.ceil(len(train) / args.batch))]
 
-def validate(policy, pruner, val, directions, args) -> list[dict]:
-    """The test-time rule (``--val-mode``) on the validation episodes, paired or fixed noise."""
-    plan = RecordingPlan(pruner, args.val_mode, args.sparsity)
-    with tts.accelerate(policy, directions, plan=plan, forecast=args.forecast):
-        return [run_group(policy, plan, g, args, torch.Generator().manual_seed(args.seed + 7), None)
-                for g in episode_groups(val, args.batch, None)]
+    def validate():
+        plan = RecordingPlan(pruner, args.val_mode, args.sparsity)
+        with tts.accelerate(policy, directions, plan=plan, forecast=args.forecast):
+            return [run_group(policy, plan, g, args, torch.Generator().manual_seed(args.seed + 7), None)
+                    for g in episode_groups(val, args.batch, None)]
 
+    def warm_start():
+        windows = torch.as_tensor(np.concatenate([e["obs"] for e in train]))
+        with torch.no_grad():
+            cond = policy.obs_normalizer.normalize(windows)[:, -policy.cfg.n_obs_steps:]
+            memory = policy.model.condition_memory(policy.scheduler.timesteps, cond)
+        grid = read_grid(args.init_schedule)
+        return {"init_schedule_agreement": distill_schedule(pruner, memory, grid, batch=16, seed=args.seed)}
 
-class RecordingPlan(PrunerPlan):
-    """Test-time decisions (sequential), keeping the last call's codes for the sparsity statistics."""
-
-    def __init__(self, pruner, mode: str = "argmax", sparsity: float | None = None):
-        super().__init__(pruner, mode=mode, sparsity=sparsity if mode == "budget" else None, parallel=False)
-
-    def _decide(self, memory) -> None:
-        super()._decide(memory)
-        self.last_codes = self._result
-
-
-def _mean(rows: list[dict], key: str) -> float:
-    n = sum(r["frames"] for r in rows)
-    return sum(r[key] * r["frames"] for r in rows) / max(n, 1)
-
-
-def vars_as_json(args) -> dict:
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    fit(pruner, args, train_epoch=train_epoch, validate=validate,
+        metadata=lambda: dict(trajectories=str(args.trajectories), n_train_episodes=len(train),
+                              n_val_episodes=len(val), policy=str(args.checkpoint),
+                              trajectory_collection=traj_meta.get("command")),
+        steps=K, memory_tokens=1 + policy.cfg.n_obs_steps,
+        warm_start=warm_start if args.init_schedule is not None else None)
 
 
 if __name__ == "__main__":

@@ -220,3 +220,32 @@ def test_imagenet_script_two_processes_equal_one_process(tmp_path):
     assert res["macs_ratio_with_pruner"] < res["macs_ratio"] and res["s_per_image"] > 0
     assert res["provenance"]["git_sha"] and res["image_shape"] == [8, 8, 3]
     assert json.loads((tmp_path / "one.json").read_text())["num_processes"] == 1
+
+
+def test_image_pruner_trains_end_to_end_and_static_schedule_search(tmp_path):
+    """eval/search_static.py --dit finds a schedule; eval/train_image_pruner.py starts from it
+    (--prior: epoch 0 is exactly that schedule) and writes a pruner that eval/imagenet.py can run."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
+    import search_static
+    import train_image_pruner
+
+    cfg = DiTConfig(input_size=8, patch_size=2, in_channels=4, hidden_size=32, depth=2, num_heads=2,
+                    num_classes=10, learn_sigma=True)
+    save_dit(randomize(DiT(cfg), std=0.03), tmp_path / "tiny")
+    sched = tmp_path / "bac.json"
+    search_static.main(["--dit", str(tmp_path / "tiny"), "--sparsity", "0.5", "--steps", "6", "--calls", "4",
+                        "--batch", "4", "--out", str(sched)])
+    doc = json.loads(sched.read_text())
+    assert len(doc["grid"]) == 6 and all(len(r) == 4 for r in doc["grid"]) and doc["realised_sparsity"] == 0.5
+    out = tmp_path / "pruner"
+    best = train_image_pruner.main(["--model", str(tmp_path / "tiny"), "--out", str(out), "--sparsity", "0.5",
+                                    "--steps", "6", "--n-train", "4", "--n-val", "4", "--batch", "4",
+                                    "--epochs", "1", "--hidden", "16", "--prior", str(sched), "--val-mode", "budget",
+                                    "--run-dir", str(tmp_path / "run")])
+    pr = tts.load_pruner(out)
+    hist = pr.metadata["history"]
+    assert [h["epoch"] for h in hist] == [0, 1] and hist[0]["val_sparsity"] == pytest.approx(0.5)
+    assert best["val_score"] <= hist[0]["val_score"]
+    with tts.accelerate(load_dit(tmp_path / "tiny"), pr.config.directions, pruner=pr, sparsity=0.5) as acc:
+        sample_dit(acc.target.denoiser, torch.arange(2), steps=6, cfg_scale=1.5, generator=torch.Generator().manual_seed(0))
+        assert acc.summary().sparsity_of(acc.summary().calls[-1]) == pytest.approx(0.5)

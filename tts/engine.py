@@ -18,7 +18,7 @@ import torch
 import torch.nn as nn
 
 from .cache import ReuseCache
-from .flops import OTHER, MacProfiler
+from .flops import MacProfiler
 from .hooks import Patches
 from .plans import COMPUTE, DIRECTIONS, ROLLOUT, Plan
 from .spec import BlockSpec, Lazy, Target, block_families

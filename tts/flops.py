@@ -16,7 +16,6 @@ from __future__ import annotations
 import math
 from typing import Any, Callable, Hashable, Optional, Sequence
 
-import torch
 import torch.nn as nn
 
 __all__ = ["register_mac_rule", "module_macs", "MacProfiler", "flop_counter_macs", "OTHER"]

@@ -1,0 +1,116 @@
+"""Train a TTS pruner for a class-conditional DiT (the image variant: forward and timestep directions).
+
+    python eval/train_image_pruner.py --model checkpoints/digits_dit --out checkpoints/pruners/digits_tts_0.8 \
+        --sparsity 0.8 --steps 50 --cfg 1.5 --n-train 256 --n-val 64 --epochs 4 [--prior SCHEDULE.json]
+
+The pruner reads the DiT's own conditioning for all K steps at once (``DiT.condition_memory``:
+timestep + class embedding; with guidance the batch is [cond; uncond], so the two halves get their
+own decisions) and is trained on sampled trajectories of the dense model with paired noise: for
+each training index i (class i % num_classes, initial noise seeded by ``(--seed + 2, i)``, disjoint
+from eval/imagenet.py's evaluation samples, which use ``(0, i)``), the dense DDIM sample is the
+target and the sparse sampler, run with straight-through gates from the same noise, is trained
+towards it: L1 on the final sample + lambda * |reuse fraction - sparsity| per row. Validation uses
+the test-time rule (``--val-mode``). Loop, checkpoints and ``--resume``: eval/pruner_fit.py.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import parse_args  # noqa: E402
+from imagenet import index_seed  # noqa: E402
+from pruner_fit import RecordingPlan, add_training_args, fit, read_grid  # noqa: E402
+
+import tts  # noqa: E402
+from tts.adapters.dit import load_dit, sample_dit  # noqa: E402
+from tts.gates import reuse_fraction  # noqa: E402
+from tts.pruner import PrunerConfig, PrunerPlan, build_pruner  # noqa: E402
+
+
+def noise_for(model, seed: int, indices) -> torch.Tensor:
+    C, size = model.in_channels, model.config.input_size
+    return torch.stack([torch.randn(C, size, size, generator=torch.Generator().manual_seed(index_seed(seed, int(i))))
+                        for i in indices])
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", type=Path, required=True, help="the (frozen) DiT (tts.adapters.dit.load_dit)")
+    add_training_args(ap, sparsity=0.8, directions="forward,timestep", batch=16)
+    ap.add_argument("--steps", type=int, default=50, help="DDIM steps")
+    ap.add_argument("--cfg", type=float, default=1.5)
+    ap.add_argument("--n-train", type=int, default=256)
+    ap.add_argument("--n-val", type=int, default=64)
+    args = parse_args(ap, argv)
+    tts.plans.check_sparsity(args.sparsity)
+    directions = tts.plans.check_directions(args.directions.split(","))
+    if "rollout" in directions:
+        raise SystemExit("an image generator has no rollouts: use the forward and/or timestep directions")
+    torch.manual_seed(args.seed)
+    model = load_dit(args.model).requires_grad_(False)
+    n_cls = model.y_embedder.num_classes
+    data_seed = args.seed + 2
+    train_idx = np.arange(args.n_train)
+    val_idx = np.arange(args.n_train, args.n_train + args.n_val)
+
+    def dense(indices) -> torch.Tensor:
+        out = []
+        for s in range(0, len(indices), 64):
+            idx = indices[s:s + 64]
+            out.append(sample_dit(model, torch.as_tensor(idx % n_cls), steps=args.steps, cfg_scale=args.cfg,
+                                  noise=noise_for(model, data_seed, idx)))
+        return torch.cat(out)
+
+    print(f"dense targets for {len(train_idx)} + {len(val_idx)} samples ...", flush=True)
+    targets = dense(np.concatenate([train_idx, val_idx]))
+    cfg = model.config
+    pruner = build_pruner(PrunerConfig(memory_dim=cfg.hidden_size, num_branches=2 * cfg.depth, directions=directions,
+                                       hidden=args.hidden, steps=args.steps, prior=args.prior is not None))
+    if args.prior is not None:
+        pruner.set_prior(read_grid(args.prior))
+    train_plan = PrunerPlan(pruner, mode="ste")
+
+    def run(plan, idx, opt=None) -> dict:
+        labels = torch.as_tensor(idx % n_cls)
+        pred = sample_dit(model, labels, steps=args.steps, cfg_scale=args.cfg, noise=noise_for(model, data_seed, idx),
+                          enable_grad=opt is not None)
+        l1 = (pred - targets[idx]).abs().mean()
+        if opt is not None:
+            reuse = reuse_fraction(plan.gates)  # every row: cond and uncond halves
+            loss = l1 + args.lam * (reuse - args.sparsity).abs().mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(pruner.parameters(), 1.0)
+            opt.step()
+            reuse = reuse.detach()
+        else:
+            reuse = (plan.last_codes != 0).float().mean((1, 2))
+        return {"l1": float(l1.detach()), "sparsity": float(reuse.mean()), "frames": len(idx)}
+
+    def batches(idx, rng):
+        order = idx if rng is None else rng.permutation(idx)
+        return [order[s:s + args.batch] for s in range(0, len(order), args.batch)]
+
+    def train_epoch(opt, rng, noise_rng, epoch):
+        with tts.accelerate(model, directions, plan=train_plan, forecast=args.forecast):
+            return [run(train_plan, b, opt) for b in tqdm(batches(train_idx, rng), desc=f"epoch {epoch + 1}/{args.epochs}")]
+
+    def validate():
+        plan = RecordingPlan(pruner, args.val_mode, args.sparsity)
+        with tts.accelerate(model, directions, plan=plan, forecast=args.forecast):
+            return [run(plan, b) for b in batches(val_idx, None)]
+
+    return fit(pruner, args, train_epoch=train_epoch, validate=validate,
+               metadata=lambda: dict(model=str(args.model), n_train_samples=len(train_idx),
+                                     n_val_samples=len(val_idx), data_seed=data_seed),
+               steps=args.steps, memory_tokens=1)
+
+
+if __name__ == "__main__":
+    main()
