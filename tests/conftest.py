@@ -12,6 +12,15 @@ import torch.nn as nn
 torch.set_num_threads(2)
 
 
+@pytest.fixture(scope="module")
+def one_thread():
+    """Torch on one thread for a module (heavy tests on the 2-core CI machine); restored afterwards."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def randomize(model: nn.Module, seed: int = 0, std: float = 0.1) -> nn.Module:
     """Replace every floating parameter by N(0, std) (zero-initialised adaLN gates would hide bugs)."""
     g = torch.Generator().manual_seed(seed)

@@ -17,13 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
 import fid  # noqa: E402
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Inception on one thread (the CI machine has 2 cores); restored for the other test modules."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest: 1 torch thread for this module
 
 
 def _random_spd(d: int, rng: np.random.Generator, rank: int | None = None) -> np.ndarray:

@@ -23,12 +23,7 @@ from tts.adapters.dit import (DIT_CONFIGS, DiT, DiTConfig, dit_config_from_state
 REPO = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest: 1 torch thread for this module
 
 
 def _model(seed: int = 0) -> DiT:
