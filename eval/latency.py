@@ -63,6 +63,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--plan", default="uniform:0.93:timestep", help="for --method static")
     ap.add_argument("--pruner", type=Path, default=None)
     ap.add_argument("--sparsity", type=float, default=None, help="tts exact-budget mode")
+    ap.add_argument("--parallel", choices=["auto", "on", "off"], default="auto",
+                    help="pruner overlap with step 0 (worker thread on CPU; auto: only with idle cores)")
     ap.add_argument("--forecast", type=int, default=0, help="TaylorSeer-style forecast order for timestep reuse")
     ap.add_argument("--batch", type=int, nargs="+", default=[1, 28])
     ap.add_argument("--trials", type=int, default=5)
@@ -71,7 +73,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, default=None)
     args = parse_args(ap, argv)
     label = method_label(args)
-    out_path = args.out or REPO / "results" / "robot" / f"latency_{args.task}_{label}.json"
+    suffix = "" if args.parallel == "auto" else f"_parallel-{args.parallel}"
+    out_path = args.out or REPO / "results" / "robot" / f"latency_{args.task}_{label}{suffix}.json"
     episodes, _ = load_trajectories(args.trajectories)
     pool = episodes[args.first_episode:] or episodes
     dense = load_policy(args.checkpoint)
@@ -113,7 +116,7 @@ def main(argv=None) -> dict:
               f"(pruner included); breakdown {', '.join(f'{k} {v:.1f}' for k, v in r['timing_median_ms'].items())}")
     res = {
         "provenance": provenance(seeds={"noise": "1000 * trial + frame"}),
-        "task": args.task, "checkpoint": str(args.checkpoint), "method": label,
+        "task": args.task, "checkpoint": str(args.checkpoint), "method": label, "parallel": args.parallel,
         "trajectories": str(args.trajectories), "episodes_from": args.first_episode,
         "protocol": "per trial: reset, untimed dense frame 0, timed frames 1..frames; dense = untouched policy, "
                     "same trials, alternating order; medians",

@@ -85,8 +85,9 @@ def accelerate(policy, args) -> "tts.Accelerator":
         trained = int(getattr(pruner, "metadata", {}).get("forecast", 0) or 0)
         if trained != forecast:
             raise SystemExit(f"{args.pruner} was trained with --forecast {trained}; evaluate it with the same")
+        parallel = {"auto": "auto", "on": True, "off": False}[getattr(args, "parallel", "auto")]
         return tts.accelerate(policy, pruner.config.directions, pruner=pruner, sparsity=args.sparsity,
-                              forecast=forecast)
+                              forecast=forecast, parallel=parallel)
     if args.method == "ddim":
         policy.set_sampler("ddim", args.steps)
     directions, plan = parse_plan(args.plan if args.method == "static" else "dense")

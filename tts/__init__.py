@@ -71,7 +71,7 @@ def accelerate(
     plan: Optional[Plan] = None,
     sparsity: Optional[float] = None,
     pruner: Optional[PrunerModule] = None,
-    parallel: bool = True,
+    parallel: Union[bool, str] = "auto",
     blocks: BlocksArg = None,
     fast_dense: bool = True,
     forecast: int = 0,
@@ -86,7 +86,8 @@ def accelerate(
     pruner: a trained :class:`tts.Pruner` or :class:`tts.StaticRouter` (see ``eval/train_pruner.py``): decisions per sample and
         call, predicted from the model's condition memory (argmax, as in the paper, unless
         ``sparsity`` is given).
-    parallel: run the pruner on a worker thread / side CUDA stream while step 0 runs.
+    parallel: run the pruner on a side CUDA stream (GPU) / worker thread (CPU) while step 0 runs;
+        ``"auto"``: on CPU only when torch leaves a core idle (see :class:`tts.PrunerPlan`).
     blocks: ``{glob over module names: BlockSpec}`` for blocks tts does not recognise.
     forecast: order O of a TaylorSeer-style forecast for timestep reuse (0: reuse the cached output
         as is; 1: extrapolate linearly from the last two computes; ...).
