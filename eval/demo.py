@@ -1,8 +1,8 @@
-"""Main job on the bundled default: the bundled Lift Diffusion Policy in robosuite, dense vs a
-static sparse plan, a few test episodes each; prints success and the policy-call speed-up measured
-in this process.
+"""Main job on the bundled default: the bundled Lift Diffusion Policy in robosuite, dense vs a static
+93%-sparse schedule (searched offline by eval/search_static.py), a few test episodes each; prints
+success and the policy-call speed-up measured in this process.
 
-    python eval/demo.py [--episodes 5] [--plan uniform:0.9:timestep] [--engine]
+    python eval/demo.py [--episodes 5] [--plan file:results/schedules/lift_bac_0.93.json] [--engine]
 
 ``--engine`` instead runs the engine benchmark on a DP-sized transformer and a DiT-S/2 (random
 weights: speed and MACs only).
@@ -34,7 +34,8 @@ def robot_demo(checkpoint: Path, episodes: int, plan_spec: str, seed: int) -> No
     print(f"tts demo: {checkpoint.name} on robosuite Lift, {episodes} test episodes (seeds {seeds[0]}..{seeds[-1]}),"
           f" batch {episodes} (one env per episode)\n")
     results = {}
-    for label, spec in (("dense", "dense"), (f"tts {plan_spec}", plan_spec)):
+    name = Path(plan_spec[5:]).stem if plan_spec.startswith("file:") else plan_spec
+    for label, spec in (("dense", "dense"), (f"tts {name}", plan_spec)):
         directions, plan = parse_plan(spec)
         with tts.accelerate(policy, directions, plan=plan) as acc:
             outcomes, lat = run_wave(policy, envs, seeds, "lift", torch.Generator().manual_seed(seed))
@@ -52,7 +53,8 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoint", type=Path, default=DEFAULT_CKPT)
     ap.add_argument("--episodes", type=int, default=5)
-    ap.add_argument("--plan", default="uniform:0.9:timestep")
+    ap.add_argument("--plan", default="file:results/schedules/lift_bac_0.93.json",
+                    help="a static plan: file:<searched schedule JSON> (relative to the repo), uniform:<s>:<dir>, ...")
     ap.add_argument("--seed", type=int, default=100000)
     ap.add_argument("--engine", action="store_true", help="engine benchmark on random-weight models instead")
     args = ap.parse_args(argv)
@@ -69,7 +71,10 @@ def main(argv=None) -> None:
         return
     if not args.checkpoint.with_suffix(".json").exists():
         raise SystemExit(f"{args.checkpoint}.json not found: train it with eval/train_policy.py (see README)")
-    robot_demo(args.checkpoint, args.episodes, args.plan, args.seed)
+    plan = args.plan
+    if plan.startswith("file:") and not Path(plan[5:]).is_absolute():
+        plan = f"file:{REPO / plan[5:]}"
+    robot_demo(args.checkpoint, args.episodes, plan, args.seed)
 
 
 if __name__ == "__main__":

@@ -34,16 +34,16 @@ def robot_table(folder: Path) -> str:
 
 
 def latency_table(folder: Path) -> str:
-    rows = ["| task | method | batch | dense ms | accelerated ms | speed-up | sparsity | MACs dense / (realised + pruner) "
-            "| pruner MACs / dense | breakdown ms (median) | git SHA |",
-            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| task | method | pruner overlap | batch | dense ms | accelerated ms | speed-up | sparsity "
+            "| MACs dense / (realised + pruner) | pruner MACs / dense | breakdown ms (median) | git SHA |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for path in sorted(folder.glob("latency_*.json")):
         r = json.loads(path.read_text())
         for row in r["rows"]:
             m = row["macs_per_call"]
             brk = ", ".join(f"{k} {v:.1f}" for k, v in row["timing_median_ms"].items())
             rows.append(
-                f"| {r['task']} | {r['method']} | {row['batch']} | {row['dense_ms']['median']:.1f} | "
+                f"| {r['task']} | {r['method']} | {r.get('parallel', 'auto')} | {row['batch']} | {row['dense_ms']['median']:.1f} | "
                 f"{row['accelerated_ms']['median']:.1f} | **{row['speedup']:.2f}x** | {row['sparsity']:.3f} | "
                 f"{m['dense'] / max(m['realised_with_pruner'], 1):.2f} | {m['pruner'] / m['dense']:.4f} | {brk} | "
                 f"`{r['provenance']['git_sha'][:10]}` |")
@@ -62,11 +62,13 @@ def main() -> None:
             + latency_table(folder))
     write_atomic(folder / "TABLE.md", text)
     readme = REPO / "README.md"
-    begin, end = "<!-- robot-table:begin (eval/tables.py) -->", "<!-- robot-table:end -->"
     body = readme.read_text()
-    if begin in body and end in body:  # the README shows the same generated table
-        head, rest = body.split(begin, 1)
-        write_atomic(readme, head + begin + "\n" + robot_table(folder) + end + rest.split(end, 1)[1])
+    for name, table in (("robot", robot_table(folder)), ("latency", latency_table(folder))):
+        begin, end = f"<!-- {name}-table:begin (eval/tables.py) -->", f"<!-- {name}-table:end -->"
+        if begin in body and end in body:  # the README shows the same generated tables
+            head, rest = body.split(begin, 1)
+            body = head + begin + "\n" + table + end + rest.split(end, 1)[1]
+    write_atomic(readme, body)
     print(text)
 
 
