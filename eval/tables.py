@@ -1,6 +1,6 @@
 """Collect result JSONs into markdown tables (no number is typed by hand).
 
-    python eval/tables.py   # results/robot/TABLE.md and the README's robot table, from results/robot/*.json
+    python eval/tables.py   # results/robot/TABLE.md and the README's tables, from results/robot/*.json
 """
 from __future__ import annotations
 
@@ -33,6 +33,29 @@ def robot_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+def summary_table(folder: Path) -> str:
+    """Success per (task, method): mean +- std over evaluation seeds (complete runs only)."""
+    runs: dict[tuple[str, str], list[dict]] = {}
+    for path in sorted(folder.glob("*.json")):
+        r = json.loads(path.read_text())
+        if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
+            runs.setdefault((r["task"], r["method"]), []).append(r)
+    rows = ["| task | method | success mean | std | evaluation seeds (first test seed of each run) | sparsity |",
+            "|---|---|---|---|---|---|"]
+    for (task, method), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], -_mean([r["success_rate"] for r in kv[1]]))):
+        sr = [r["success_rate"] for r in rs]
+        info = rs[0].get("tts", {})
+        sparsity = info.get("sparsity_non_dense_calls", info.get("sparsity_all_calls", 0))
+        std = f"{(sum((x - _mean(sr)) ** 2 for x in sr) / (len(sr) - 1)) ** 0.5:.2f}" if len(sr) > 1 else "-"
+        first = ", ".join(str(r["provenance"]["seeds"][0]) for r in rs)
+        rows.append(f"| {task} | {method} | {_mean(sr):.2f} | {std} | {len(rs)}: {first} | {sparsity:.3f} |")
+    return "\n".join(rows) + "\n"
+
+
+def _mean(xs: list[float]) -> float:
+    return sum(xs) / len(xs)
+
+
 def latency_table(folder: Path) -> str:
     rows = ["| task | method | pruner overlap | batch | dense ms | accelerated ms | speed-up | sparsity "
             "| MACs dense / (realised + pruner) | pruner MACs / dense | breakdown ms (median) | git SHA |",
@@ -57,13 +80,14 @@ def main() -> None:
             "on scripted-expert demonstrations, which are far more uniform than human data. Sparsity: fraction of "
             "reused (step, branch) decisions in calls after the first of each episode (with the rollout "
             "direction the first call is dense). MACs of the last call, decoder + rest of the model, pruner "
-            "included.\n\n" + robot_table(folder)
+            "included.\n\n## Success, mean over evaluation seeds\n\n" + summary_table(folder)
+            + "\n## Every run\n\n" + robot_table(folder)
             + "\n## Policy-call latency, accelerated vs dense in the same process (`eval/latency.py`)\n\n"
             + latency_table(folder))
     write_atomic(folder / "TABLE.md", text)
     readme = REPO / "README.md"
     body = readme.read_text()
-    for name, table in (("robot", robot_table(folder)), ("latency", latency_table(folder))):
+    for name, table in (("robot", summary_table(folder)), ("latency", latency_table(folder))):
         begin, end = f"<!-- {name}-table:begin (eval/tables.py) -->", f"<!-- {name}-table:end -->"
         if begin in body and end in body:  # the README shows the same generated tables
             head, rest = body.split(begin, 1)
