@@ -103,6 +103,9 @@ def main(argv=None) -> None:
     ap.add_argument("--static", action="store_true",
                     help="train a static router instead (Learning-to-Cache-style baseline: one decision per "
                          "step x branch, not per observation)")
+    ap.add_argument("--head-bias", default=None,
+                    help="initial head bias per option, compute first, e.g. 2,0,1,0 for (C, F, T, R): when the "
+                         "sparsity term pushes compute down, the preferred direction takes over first")
     ap.add_argument("--init-schedule", type=Path, default=None,
                     help="warm start: fit the pruner to a searched static schedule (eval/search_static.py JSON) "
                          "by cross-entropy before the straight-through training")
@@ -118,7 +121,8 @@ def main(argv=None) -> None:
     K = policy.cfg.num_inference_steps
     pruner = build_pruner(PrunerConfig(
         memory_dim=cfg.n_emb, num_branches=3 * cfg.n_layer, directions=directions, hidden=args.hidden,
-        kind="static" if args.static else "transformer", steps=K, prior=args.prior is not None))
+        kind="static" if args.static else "transformer", steps=K, prior=args.prior is not None,
+        head_bias=[float(x) for x in args.head_bias.split(",")] if args.head_bias else None))
     if args.prior is not None:
         pruner.set_prior(read_grid(args.prior))
     train_plan = PrunerPlan(pruner, mode="ste")

@@ -134,6 +134,11 @@ def test_pruner_shapes_query_cache_and_errors():
         PrunerConfig(memory_dim=8, num_branches=3, directions=("sideways",))
     with pytest.raises(ValueError, match="at least one"):
         PrunerConfig(memory_dim=8, num_branches=3, directions=())
+    with pytest.raises(ValueError, match="one value per option"):
+        PrunerConfig(memory_dim=8, num_branches=3, head_bias=[2.0, 0.0])
+    biased = Pruner(PrunerConfig(memory_dim=32, num_branches=6, hidden=16, heads=2, ffn=32, head_bias=[0, 0, 5, 0]))
+    with torch.no_grad():
+        assert (argmax_codes(biased.eval()(mem), biased.config.codes)[:, 1:] == TIMESTEP).all()
 
 
 def test_pruner_macs_counted_and_small_next_to_the_policy():

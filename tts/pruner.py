@@ -52,6 +52,7 @@ class PrunerConfig:
     kind: str = "transformer"  # or "static": one learned decision per (step, branch), see StaticRouter
     steps: int = 0  # K, for kind="static" and for a prior
     prior: bool = False  # add fixed prior logits [steps, nb, O] (a searched schedule) to the pruner's own
+    head_bias: Optional[list[float]] = None  # initial head bias per option (default: compute 2, reuse 0)
 
     def __post_init__(self) -> None:
         self.directions = check_directions(self.directions)
@@ -59,6 +60,8 @@ class PrunerConfig:
             raise ValueError("a pruner needs at least one reuse direction")
         if self.queries not in ("sinusoidal", "learned"):
             raise ValueError(f"queries must be 'sinusoidal' or 'learned', got {self.queries!r}")
+        if self.head_bias is not None and len(self.head_bias) != len(self.codes):
+            raise ValueError(f"head_bias needs one value per option {self.codes}, got {self.head_bias}")
         if self.kind not in ("transformer", "static"):
             raise ValueError(f"kind must be 'transformer' or 'static', got {self.kind!r}")
         if (self.kind == "static" or self.prior) and self.steps < 1:
@@ -120,7 +123,10 @@ class Pruner(nn.Module):
         else:
             self.prior = None
             with torch.no_grad():  # start near "compute everything" so early training is stable
-                self.head.bias[0] = 2.0
+                if c.head_bias is None:
+                    self.head.bias[0] = 2.0
+                else:
+                    self.head.bias.copy_(torch.tensor(c.head_bias))
         self._query_cache: Optional[torch.Tensor] = None
 
     def train(self, mode: bool = True) -> "Pruner":
