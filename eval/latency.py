@@ -32,14 +32,21 @@ from train_pruner import obs_dict  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 
 
+def _sync(policy) -> None:
+    if policy.device.type == "cuda":
+        torch.cuda.synchronize(policy.device)
+
+
 def time_calls(policy, frames: list[dict], gen_seed: int) -> list[float]:
     """reset, untimed frame 0, then the latency of each later frame."""
     policy.reset()
     out = []
     for r, obs in enumerate(frames):
         g = torch.Generator().manual_seed(gen_seed + r)
+        _sync(policy)
         t0 = time.perf_counter()
         policy.predict_action(obs, generator=g)
+        _sync(policy)
         if r:
             out.append(time.perf_counter() - t0)
     return out

@@ -64,8 +64,8 @@ class RecordingPlan(PrunerPlan):
     def __init__(self, pruner, mode: str = "argmax", sparsity: Optional[float] = None):
         super().__init__(pruner, mode=mode, sparsity=sparsity if mode == "budget" else None, parallel=False)
 
-    def _decide(self, memory) -> None:
-        super()._decide(memory)
+    def _decide(self, memory, blocking: bool = False) -> None:
+        super()._decide(memory, blocking)
         self.last_codes = self._result
 
 
@@ -95,7 +95,12 @@ def fit(pruner, args, *, train_epoch: Callable, validate: Callable[[], list[dict
         opt.load_state_dict(st["opt"])
         sched.load_state_dict(st["sched"])
         epoch, history, best, best_state = st["epoch"], st["history"], st["best"], st["best_state"]
+        rng_states = st.get("rng")
         print(f"resumed after epoch {epoch}")
+    else:
+        rng_states = None
+    if args.epochs < 1:
+        raise SystemExit("--epochs must be >= 1")
 
     def score(row: dict) -> float:
         return row["val_l1"] + args.lam * abs(row["val_sparsity"] - args.sparsity)
@@ -108,8 +113,10 @@ def fit(pruner, args, *, train_epoch: Callable, validate: Callable[[], list[dict
         print(" ".join(f"{k}={x:.4g}" for k, x in row.items()))
         history.append(row)
         best, best_state = row, {k: x.clone() for k, x in pruner.state_dict().items()}
-    rng = np.random.default_rng(args.seed + epoch)
-    noise_rng = torch.Generator().manual_seed(args.seed + 1000 * epoch)
+    rng = np.random.default_rng(args.seed)
+    noise_rng = torch.Generator().manual_seed(args.seed + 1000)
+    if rng_states is not None:  # continue the same shuffles and noise as an uninterrupted run
+        rng.bit_generator.state, _ = rng_states[0], noise_rng.set_state(rng_states[1])
     t_start, train_seconds = time.time(), (history[-1].get("train_seconds", 0.0) if history else 0.0)
     for epoch in range(epoch, args.epochs):
         pruner.train()
@@ -129,7 +136,8 @@ def fit(pruner, args, *, train_epoch: Callable, validate: Callable[[], list[dict
             best, best_state = row, {k: x.clone() for k, x in pruner.state_dict().items()}
         with atomic_path(state_path) as tmp:
             torch.save({"pruner": pruner.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                        "epoch": epoch + 1, "history": history, "best": best, "best_state": best_state}, tmp)
+                        "epoch": epoch + 1, "history": history, "best": best, "best_state": best_state,
+                        "rng": (rng.bit_generator.state, noise_rng.get_state())}, tmp)
         # the best epoch's weights, with the history so far: a usable checkpoint after every epoch
         meta = provenance(seeds={"train": args.seed})
         meta.update(_as_json(args), **metadata(), best_epoch=best, history=history, train_seconds=train_seconds,

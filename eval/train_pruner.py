@@ -113,6 +113,8 @@ def main(argv=None) -> None:
     tts.plans.check_sparsity(args.sparsity)
     directions = tts.plans.check_directions(args.directions.split(","))
     torch.manual_seed(args.seed)
+    if args.static and (args.prior or args.init_schedule or args.head_bias):
+        raise SystemExit("--static trains a table of logits: --prior / --init-schedule / --head-bias do not apply")
 
     episodes, traj_meta = load_trajectories(args.trajectories)
     train, val = split_episodes(episodes, args.n_train, args.n_val)

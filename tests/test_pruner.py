@@ -345,3 +345,19 @@ def test_prior_schedule_is_the_starting_decision_and_errors():
         pr.set_prior(grid[:3])
     with pytest.raises(ValueError, match="steps="):
         PrunerConfig(memory_dim=8, num_branches=3, prior=True)
+
+
+def test_a_call_that_skips_the_condition_encoder_gets_no_stale_decisions():
+    pol = small_policy(num_steps=4)
+    model = pol.model
+    pr = _pruner(("forward", "timestep"), seed=7)
+    ts = pol._fast.timesteps
+    cond = torch.randn(2, 2, 19)
+    x = torch.randn(2, 10, 7)
+    with tts.accelerate(model, ("forward", "timestep"), pruner=pr), torch.no_grad():
+        memory = model.condition_memory(ts, cond)  # observed: decisions for this call
+        for k, t in enumerate(ts):
+            model(x, t, cond, memory=memory[:, k])
+        with pytest.raises(RuntimeError, match="no condition memory"):
+            for t in ts:  # DP's stock loop: the encoder runs inside forward, the pruner never sees it
+                model(x, t, cond)

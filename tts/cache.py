@@ -63,11 +63,12 @@ class TaylorSlot:
                     all_rows: bool = False) -> "TaylorSlot":
         """``rows`` computed ``d_rows`` at ``step``; the other rows keep their history."""
         old = self.derivs[0]
+        rows = rows.to(old.device)
         n = old.shape[self.dim]
         uniform = all_rows and not torch.is_tensor(self.step) and not torch.is_tensor(self.valid)
         if uniform:  # the common case: plain tensors, no per-row bookkeeping
             out = TaylorSlot(d_rows, step, self.dim, min(self.valid + 1, order + 1))
-            gap = float(step - self.step)
+            gap = float(max(step - self.step, 1))  # a branch run twice in one step: no division by 0
             for i in range(min(order, self.valid)):
                 out.derivs.append((out.derivs[i] - self.derivs[i]) / gap)
             return out

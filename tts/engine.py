@@ -159,6 +159,7 @@ class Accelerator:
         self._soft: Optional[torch.Tensor] = None  # [B, nb, O] straight-through gates (training)
         self._soft_codes: list[int] = list(getattr(plan, "codes", []))
         self._timing: dict[str, float] = {}
+        self._device = torch.device("cpu")  # of the current call's inputs
         self.macs_per_row: Optional[dict[Hashable, float]] = None
         self.calls: list[CallRecord] = []
         self.max_records = 1000
@@ -211,12 +212,12 @@ class Accelerator:
         def make_boundary(orig):
             def call(*args, **kwargs):
                 self._pending_call = True
-                n_calls = len(self.calls)
+                before = self.calls[-1] if self.calls else None
                 t0 = time.perf_counter()
                 try:
                     return orig(*args, **kwargs)
                 finally:
-                    if len(self.calls) > n_calls or (self.calls and n_calls >= self.max_records):
+                    if self.calls and self.calls[-1] is not before:  # this call reached the denoiser
                         self.calls[-1].timing["total"] = time.perf_counter() - t0
 
             return call
@@ -326,7 +327,7 @@ class Accelerator:
             return orig(*args, **kwargs)
         batch = self.target.batch_of(args, kwargs)
         if self._is_new_call(args, kwargs) or self._batch is None:
-            self._start_call(batch)
+            self._start_call(batch, args, kwargs)
         elif batch != self._batch:
             raise ValueError(
                 f"batch size changed from {self._batch} to {batch} inside a sampling call "
@@ -346,7 +347,9 @@ class Accelerator:
         self._k += 1
         return out
 
-    def _start_call(self, batch: int) -> None:
+    def _start_call(self, batch: int, args: tuple = (), kwargs: Optional[dict] = None) -> None:
+        self._device = next((a.device for a in list(args) + list((kwargs or {}).values())
+                             if isinstance(a, torch.Tensor)), torch.device("cpu"))
         self._pending_call = False
         self._k = 0
         if self.use_rollout and not self._episode_dense and batch != self._episode_batch:
@@ -469,8 +472,19 @@ class Accelerator:
             return cached
         return self._run_mixed(b, fn, batched)
 
-    def _run_mixed(self, b: int, fn: Callable, batched: tuple) -> torch.Tensor:
+    def _on_device(self, b: int, device: torch.device) -> tuple:
+        """The row indices of branch b's groups on ``device`` (built on the CPU once per decision
+        pattern, moved once per pattern: index ops need the index on the data's device)."""
         cidx, reuse = self._groups[b]
+        ref = cidx if cidx is not None else reuse[0][1]
+        if ref.device != device:
+            cidx = None if cidx is None else cidx.to(device)
+            reuse = [(c, ix.to(device)) for c, ix in reuse]
+            self._groups[b] = (cidx, reuse)
+        return cidx, reuse
+
+    def _run_mixed(self, b: int, fn: Callable, batched: tuple) -> torch.Tensor:
+        cidx, reuse = self._on_device(b, self._device)
         dim = self._batch_dim[b]
         batch = self._batch
         out = None

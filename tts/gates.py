@@ -14,7 +14,7 @@ rest are the enabled reuse directions in canonical order). Step 0 is always comp
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Sequence, Union
 
 import torch
 
@@ -41,19 +41,24 @@ def reuse_fraction(gates: torch.Tensor) -> torch.Tensor:
     return 1.0 - gates[..., 0].mean(dim=(1, 2))
 
 
-def _to_codes(option: torch.Tensor, codes: Sequence[int]) -> torch.Tensor:
+Codes = Union[Sequence[int], torch.Tensor]  # option -> decision code; a tensor table on the logits' device
+
+
+def _to_codes(option: torch.Tensor, codes: Codes) -> torch.Tensor:
+    if torch.is_tensor(codes):  # prebuilt on the device: no host->device copy (which would sync a stream)
+        return codes[option]
     table = torch.tensor(list(codes), dtype=torch.int8, device=option.device)
     return table[option]
 
 
-def argmax_codes(logits: torch.Tensor, codes: Sequence[int]) -> torch.Tensor:
+def argmax_codes(logits: torch.Tensor, codes: Codes) -> torch.Tensor:
     """Decision codes [B, K, nb] (int8) by argmax, step 0 forced to compute."""
     option = logits.argmax(-1)
     option[:, 0] = 0
     return _to_codes(option, codes)
 
 
-def budget_codes(logits: torch.Tensor, codes: Sequence[int], sparsity: float) -> torch.Tensor:
+def budget_codes(logits: torch.Tensor, codes: Codes, sparsity: float) -> torch.Tensor:
     """Decision codes [B, K, nb] computing exactly ``round((1 - sparsity) * K * nb)`` branches per
     sample (never fewer than step 0's nb), ranked by compute probability."""
     sparsity = check_sparsity(sparsity)

@@ -13,7 +13,7 @@ sparsity per sample, see :mod:`tts.gates`) or ``"ste"`` (training: differentiabl
 branch computed and mixed). ``parallel``: the pruner runs on a side CUDA stream (GPU) or a worker
 thread (CPU) while step 0, which is always dense, runs; step 1 waits for it. ``"auto"`` (default)
 uses the thread on CPU only when torch leaves cores idle (``torch.get_num_threads() <
-os.cpu_count()``): when torch's threads already use every core, a second thread slows step 0 by
+usable cores): when torch's threads already use every core, a second thread slows step 0 by
 more than the overlap saves (measured on a 2-core CPU: 58 ms vs 54 ms per call at batch 1).
 """
 from __future__ import annotations
@@ -224,6 +224,14 @@ def build_pruner(config: PrunerConfig) -> nn.Module:
 PrunerModule = Union[Pruner, StaticRouter]
 
 
+def _usable_cores() -> int:
+    """CPUs this process may run on (affinity / container limits), not all of the machine's."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 class PrunerPlan(Plan):
     """Decisions from a :class:`Pruner`, computed once per sampling call from the condition memory."""
 
@@ -246,6 +254,8 @@ class PrunerPlan(Plan):
         self.soft = mode == "ste"
         self._pending: Optional[threading.Thread] = None
         self._gpu: Optional[tuple] = None  # (pinned host decisions, start event, done event)
+        self._observed = False  # observe() ran for the call about to start
+        self._tables: dict[torch.device, torch.Tensor] = {}
         self._result: Optional[torch.Tensor] = None
         self._error: Optional[BaseException] = None
         self.gates: Optional[torch.Tensor] = None
@@ -270,8 +280,12 @@ class PrunerPlan(Plan):
     def observe(self, memory: torch.Tensor, dense: bool) -> None:
         """Condition memory [B, K, Tc, D] of the call about to start. ``dense``: the engine will
         compute everything anyway (first call of an episode), so no decisions are needed."""
+        if self._pending is not None:  # a previous call ended early (an exception): never reuse its thread
+            self._pending.join()
+            self._pending = None
         self.timing = {"pruner": 0.0, "wait": 0.0}
         self._result, self._error, self.gates, self._gpu = None, None, None, None
+        self._observed = True
         key = tuple(memory.shape[1:])
         if key != self._macs_key:
             self._macs_key = key
@@ -283,41 +297,59 @@ class PrunerPlan(Plan):
             return
         memory = memory.detach()
         if not self.parallel:
-            self._decide(memory)
+            self._decide(memory, blocking=True)
         elif memory.is_cuda:
             self._launch_on_side_stream(memory)
-        elif self.parallel == "auto" and torch.get_num_threads() >= (os.cpu_count() or 1):
-            self._decide(memory)  # no idle core to overlap on
+        elif self.parallel == "auto" and torch.get_num_threads() >= _usable_cores():
+            self._decide(memory, blocking=True)  # no idle core to overlap on
         else:  # CPU: a worker thread (torch ops release the GIL) while step 0 runs
             self._pending = threading.Thread(target=self._decide, args=(memory,), daemon=True)
             self._pending.start()
 
-    def _codes(self, memory: torch.Tensor) -> torch.Tensor:
+    def begin_call(self, call_index: int, batch: int) -> None:
+        """A sampling call that did not go through the condition encoder has no decisions: never
+        serve it the previous call's."""
+        if not self._observed:
+            self._result, self.gates, self._gpu = None, None, None
+        self._observed = False
+
+    def _table(self, device: torch.device) -> torch.Tensor:
+        """Option -> decision code, on ``device`` (built once: a host->device copy syncs a stream)."""
+        table = self._tables.get(device)
+        if table is None:
+            table = self._tables[device] = torch.tensor(self.codes, dtype=torch.int8, device=device)
+        return table
+
+    def _codes(self, memory: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
         logits = self.pruner(memory)
         if self.mode == "budget":
-            return budget_codes(logits, self.codes, self.sparsity)
-        return argmax_codes(logits, self.codes)
+            return budget_codes(logits, table, self.sparsity)
+        return argmax_codes(logits, table)
 
-    def _decide(self, memory: torch.Tensor) -> None:
+    def _decide(self, memory: torch.Tensor, blocking: bool = False) -> None:
+        """Decisions on the CPU; ``blocking``: in the sampling thread, so all of it is waiting."""
         t0 = time.perf_counter()
         try:
             with torch.no_grad():
-                self._result = self._codes(memory).cpu()
+                self._result = self._codes(memory, self._table(memory.device)).cpu()
         except BaseException as e:  # re-raised in the sampling thread
             self._error = e
         self.timing["pruner"] = time.perf_counter() - t0
+        if blocking:
+            self.timing["wait"] = self.timing["pruner"]
 
     def _launch_on_side_stream(self, memory: torch.Tensor) -> None:
         """GPU: the pruner runs on a side stream that waits for the encoder's output; its decisions
         are copied to pinned host memory without blocking, and an event marks the copy. Nothing
         waits for it until step 1 (step 0 is dense), so the decoder's step 0 overlaps it."""
+        table = self._table(memory.device)  # outside the side stream (built once per device)
         main = torch.cuda.current_stream(memory.device)
         side = torch.cuda.Stream(memory.device)
         side.wait_stream(main)
         start, done = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
         with torch.cuda.stream(side), torch.no_grad():
             start.record(side)
-            codes = self._codes(memory)
+            codes = self._codes(memory, table)
             host = torch.empty(codes.shape, dtype=codes.dtype, pin_memory=True)
             host.copy_(codes, non_blocking=True)
             done.record(side)
@@ -417,9 +449,10 @@ def distill_schedule(pruner: PrunerModule, memory: torch.Tensor, grid: torch.Ten
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-    pruner.train(was)
+    pruner.eval()
     with torch.no_grad():
         agree = (pruner(memory[:batch]).argmax(-1)[:, 1:] == target[1:]).float().mean()
+    pruner.train(was)
     return float(agree)
 
 

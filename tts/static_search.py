@@ -41,7 +41,8 @@ class _ComputeAndKeep(Plan):
 
 def record_branch_outputs(model, sample: Callable[[], None]) -> list[list[list[torch.Tensor]]]:
     """Every branch's output at every step of every dense sampling call that ``sample()`` runs on
-    ``model`` (anything :func:`tts.accelerate` accepts): ``out[call][k][b]``, float32 copies."""
+    ``model`` (anything :func:`tts.accelerate` accepts): ``out[call][k][b]``, float32 copies with
+    the batch dimension first."""
     from . import accelerate
 
     per_call: list[list[list[torch.Tensor]]] = []
@@ -53,7 +54,8 @@ def record_branch_outputs(model, sample: Callable[[], None]) -> list[list[list[t
         if record is not seen[0]:
             seen[0] = record
             per_call.append([])
-        per_call[-1].append([t.detach().float().clone() for t in acc.cache.timestep])
+        per_call[-1].append([t.detach().float().movedim(dim, 0).clone()  # batch first
+                             for t, dim in zip(acc.cache.timestep, acc.cache.batch_dims)])
 
     handle = acc.target.denoiser.register_forward_hook(after_step)
     try:

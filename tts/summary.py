@@ -92,6 +92,8 @@ class Summary:
         for c in calls:
             t = dict(c.timing)
             if "total" in t:  # the sampling loop outside the denoiser: scheduler steps, normalisation, noise
+                # ("wait" holds the pruner's time the sampling thread spent on it: all of it when it
+                # ran in that thread, the part step 0 did not cover when it overlapped)
                 t["scheduler_and_rest"] = t["total"] - sum(t.get(k, 0.0) for k in ("encoder", "wait", "decoder"))
             rows.append(t)
         keys = sorted({k for t in rows for k in t})
