@@ -517,10 +517,28 @@ def _dit_block_forward(block: nn.Module, run, x: torch.Tensor, c: torch.Tensor) 
     return x
 
 
+def _attention_probe(fn, block: nn.Module, *args: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """Run the attention branch on timm's non-fused path (same result, same MACs) and catch the
+    softmaxed attention where it enters ``attn_drop``: the attention each token receives [B, N]."""
+    attn = block.attn
+    caught: list[torch.Tensor] = []
+    handle = attn.attn_drop.register_forward_hook(lambda mod, inp, out: caught.append(inp[0].detach()))
+    fused, attn.fused_attn = attn.fused_attn, False
+    try:
+        delta = fn(*args)
+    finally:
+        attn.fused_attn = fused
+        handle.remove()
+    if len(caught) != 1:
+        raise RuntimeError("the attention probe expected one softmax in timm's Attention (attn_drop input)")
+    return delta, caught[0].mean(dim=(1, 2))  # [B, heads, Nq, Nk] -> mean over heads and queries
+
+
 def dit_block_spec(block: nn.Module) -> BlockSpec:
     return BlockSpec(
         family="DiT block (timm Attention/Mlp + adaLN)",
-        branches=(BranchSpec("attn", "self_attn", ("attn", "norm1")), BranchSpec("mlp", "mlp", ("mlp", "norm2"))),
+        branches=(BranchSpec("attn", "self_attn", ("attn", "norm1"), probe=_attention_probe),
+                  BranchSpec("mlp", "mlp", ("mlp", "norm2"))),
         forward=_dit_block_forward,
     )
 

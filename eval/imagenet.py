@@ -1,6 +1,7 @@
 """Class-conditional DiT sampling, dense or accelerated, into an ADM-compatible ``.npz`` (+ FID/sFID).
 
-    accelerate launch [--num_processes N] eval/imagenet.py --model PATH --method dense|fora|taylorseer|uniform|static|tts \
+    accelerate launch [--num_processes N] eval/imagenet.py --model PATH \
+        --method dense|fora|taylorseer|toca|duca|uniform|static|tts \
         [--sparsity 0.8] [--steps 50] [--cfg 1.5] [--num-samples 2000] [--out samples.npz] [--pruner PATH] \
         [--fora-n 5] [--ref REF] [--seed 0] [--batch 64]
 
@@ -9,6 +10,12 @@ Methods (all in the tts engine; ``dense`` is the untouched model):
   fora     ``tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(N, "timestep"))`` (FORA-style)
   taylorseer  FORA's interval with an order-``--taylor-order`` Taylor forecast of each reused branch
            (``forecast=O``, TaylorSeer-style)
+  toca     ToCa-style token-wise refresh (:mod:`tts.tokens`): full compute every ``--fora-n`` steps, in
+           between the MLP recomputes ``--fresh-ratio`` of its tokens (highest attention received at the
+           last full step, plus staleness), attention reused; with ``--sparsity`` instead of
+           ``--fresh-ratio``, the ratio that computes ``1 - sparsity`` of the branch MACs
+  duca     DuCa-style: as toca, but tokens chosen by dissimilarity (no attention maps) and the steps in
+           between alternate aggressive (reuse all) / conservative (token refresh)
   uniform  ``tts.plans.uniform(sparsity, "timestep")``: ``--sparsity`` of the (step, branch) decisions reuse
   static   a searched schedule (``--plan``, eval/search_static.py --model): BAC-style
   tts      a learned pruner (``--pruner``, see tts.Pruner): argmax decisions, or with ``--sparsity`` exactly
@@ -56,7 +63,7 @@ import tts  # noqa: E402
 from tts.adapters.dit import DiT, load_dit, sample_dit  # noqa: E402
 from tts.io import atomic_path  # noqa: E402
 
-METHODS = ("dense", "fora", "taylorseer", "uniform", "static", "tts")
+METHODS = ("dense", "fora", "taylorseer", "toca", "duca", "uniform", "static", "tts")
 SD_VAE_SCALE = 0.18215  # latent scale of the Stable Diffusion VAE that DiT was trained with
 
 
@@ -109,6 +116,9 @@ def build_accelerator(model: DiT, args: argparse.Namespace) -> Optional["tts.Acc
     if args.method == "taylorseer":  # FORA's interval with an order-O Taylor forecast of every reused branch
         return tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(args.fora_n, "timestep"),
                               forecast=args.taylor_order)
+    if args.method in ("toca", "duca"):
+        make = tts.tokens.toca if args.method == "toca" else tts.tokens.duca
+        return tts.accelerate(model, ("timestep",), plan=make(args.fora_n, fresh_ratio(model, args)))
     if args.method == "static":  # a searched schedule (eval/search_static.py --model ...)
         doc = json.loads(Path(args.plan).read_text())
         return tts.accelerate(model, tuple(doc["directions"]), plan=tts.plans.from_tensor(doc["grid"]))
@@ -121,6 +131,22 @@ def build_accelerator(model: DiT, args: argparse.Namespace) -> Optional["tts.Acc
     return tts.accelerate(model, pruner.config.directions, pruner=pruner, sparsity=args.sparsity)
 
 
+def mlp_share(model: DiT) -> float:
+    """Share of a DiT block's branch MACs in its MLP (the token-wise branch): per token the MLP costs
+    2 * D * mlp_hidden, attention 4 * D^2 (qkv, proj) + 2 * N * D (scores, weighted sum)."""
+    cfg = model.config
+    D, N = cfg.hidden_size, (cfg.input_size // cfg.patch_size) ** 2
+    mlp = 2 * D * int(D * cfg.mlp_ratio)
+    return mlp / (mlp + 4 * D * D + 2 * N * D)
+
+
+def fresh_ratio(model: DiT, args: argparse.Namespace) -> float:
+    """``--fresh-ratio``, or the one that matches ``--sparsity`` (of the branch MACs) at ``--fora-n``."""
+    if args.fresh_ratio is not None:
+        return args.fresh_ratio
+    return tts.tokens.fresh_ratio_for(args.sparsity, args.fora_n, mlp_share(model), alternate=args.method == "duca")
+
+
 def check_args(args: argparse.Namespace) -> None:
     if args.method == "uniform" and args.sparsity is None:
         raise ValueError("--method uniform needs --sparsity")
@@ -128,11 +154,15 @@ def check_args(args: argparse.Namespace) -> None:
         raise ValueError("--method tts needs --pruner PATH (a trained tts.Pruner)")
     if args.method == "static" and not args.plan:
         raise ValueError("--method static needs --plan SCHEDULE.json")
+    if args.method in ("toca", "duca") and (args.sparsity is None) == (args.fresh_ratio is None):
+        raise ValueError(f"--method {args.method} needs exactly one of --fresh-ratio and --sparsity")
+    if args.fresh_ratio is not None and args.method not in ("toca", "duca"):
+        raise ValueError("--fresh-ratio is only used by --method toca / duca")
     if args.method in ("dense", "fora", "taylorseer", "static") and args.sparsity is not None:
         raise ValueError(f"--sparsity does not apply to --method {args.method}")
     if args.pruner and args.method != "tts":
         raise ValueError("--pruner is only used by --method tts")
-    if args.method in ("fora", "taylorseer") and args.fora_n < 1:
+    if args.method in ("fora", "taylorseer", "toca", "duca") and args.fora_n < 1:
         raise ValueError("--fora-n must be >= 1")
     for name in ("num_samples", "batch", "steps"):
         if getattr(args, name) < 1:
@@ -197,7 +227,9 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     ap.add_argument("--sparsity", type=float, default=None,
                     help="uniform: fraction of reused decisions; tts: exact-budget mode (default: argmax)")
     ap.add_argument("--pruner", default=None, help="trained tts.Pruner (<path>.safetensors + .json), --method tts")
-    ap.add_argument("--fora-n", type=int, default=5, help="fora / taylorseer: compute every N-th step")
+    ap.add_argument("--fora-n", type=int, default=5, help="fora / taylorseer / toca / duca: compute every N-th step")
+    ap.add_argument("--fresh-ratio", type=float, default=None,
+                    help="toca / duca: fraction of MLP tokens recomputed at a refresh step (or give --sparsity)")
     ap.add_argument("--taylor-order", type=int, default=1, help="taylorseer: forecast order O")
     ap.add_argument("--plan", default=None, help="static: a searched schedule JSON (eval/search_static.py)")
     ap.add_argument("--steps", type=int, default=50)
@@ -305,7 +337,9 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
         "method": args.method,
         "plan": plan_desc,
         "sparsity_target": args.sparsity,
-        "fora_n": args.fora_n if args.method == "fora" else None,
+        "fora_n": args.fora_n if args.method in ("fora", "taylorseer", "toca", "duca") else None,
+        "taylor_order": args.taylor_order if args.method == "taylorseer" else None,
+        "fresh_ratio": fresh_ratio(model, args) if args.method in ("toca", "duca") else None,
         "pruner": args.pruner,
         "steps": args.steps,
         "scheduler": args.scheduler,

@@ -12,7 +12,7 @@ from typing import Any, Callable, Iterable, Mapping, Optional, Union
 
 import torch.nn as nn
 
-from . import plans
+from . import plans, tokens
 from .engine import Accelerator, discover_sites
 from .plans import Plan, check_directions, check_sparsity
 from .pruner import Pruner, PrunerConfig, PrunerModule, PrunerPlan, StaticRouter, load_pruner, save_pruner
@@ -35,6 +35,7 @@ __all__ = [
     "Summary",
     "Target",
     "plans",
+    "tokens",
     "register_block_family",
     "register_model_adapter",
     "resolve_target",

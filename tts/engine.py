@@ -20,7 +20,7 @@ import torch.nn as nn
 from .cache import ReuseCache
 from .flops import MacProfiler
 from .hooks import Patches
-from .plans import COMPUTE, DIRECTIONS, ROLLOUT, Plan
+from .plans import COMPUTE, DIRECTIONS, ROLLOUT, TIMESTEP, TOKENS, Plan
 from .spec import BlockSpec, Lazy, Target, block_families
 from .summary import CallRecord, Summary
 
@@ -94,6 +94,10 @@ def _select_rows(a: Any, dim: int, rows: torch.Tensor, batch: int) -> Any:
     return a
 
 
+def _call_probe(probe: Callable, module: nn.Module, fn: Callable, *args: Any) -> tuple:
+    return probe(fn, module, *args)
+
+
 class Accelerator:
     """Installed by :func:`tts.accelerate`. See the README for the user-facing API."""
 
@@ -111,9 +115,13 @@ class Accelerator:
         self.branch_names: list[str] = []
         self.branch_kinds: list[str] = []
         self._batch_dim: list[int] = []
+        self._site_of: list[int] = []
+        self._probe: list[Optional[Callable]] = []
         for name, module, spec in target.sites:
             site = _Site(name, module, spec, base=len(kind_of_branch))
             for br in spec.branches:
+                self._site_of.append(len(self.sites))
+                self._probe.append(None if br.probe is None else functools.partial(_call_probe, br.probe, module))
                 if br.kind not in kinds:
                     kinds.append(br.kind)
                 kind_of_branch.append(kinds.index(br.kind))
@@ -128,6 +136,9 @@ class Accelerator:
                                 batch_dims=self._batch_dim)
         self.plan.bind(self.num_branches, self.branch_kinds)
         allowed = {COMPUTE} | {DIRECTIONS[d] for d in self.directions}
+        if TOKENS in self.plan.uses:
+            self._check_token_plan()
+            allowed.add(TOKENS)
         bad = sorted(set(self.plan.uses) - allowed)
         if bad:
             names = [n for n, c in DIRECTIONS.items() if c in bad]
@@ -159,6 +170,7 @@ class Accelerator:
         self._soft: Optional[torch.Tensor] = None  # [B, nb, O] straight-through gates (training)
         self._soft_codes: list[int] = list(getattr(plan, "codes", []))
         self._timing: dict[str, float] = {}
+        self._want_probe = False
         self._device = torch.device("cpu")  # of the current call's inputs
         self.macs_per_row: Optional[dict[Hashable, float]] = None
         self.calls: list[CallRecord] = []
@@ -171,6 +183,25 @@ class Accelerator:
         except BaseException:
             self._patches.restore()  # never leave a model half-patched
             raise
+
+    def _check_token_plan(self) -> None:
+        """A token-refresh plan (code TOKENS) needs the timestep cache, tokens on dim 1, and
+        attention probes when it scores tokens by attention."""
+        if "timestep" not in self.directions:
+            raise ValueError(f"plan {self.plan.describe()} refreshes tokens into the timestep cache: "
+                             "enable the 'timestep' direction")
+        if self.cache.forecast:
+            raise ValueError("forecast= and token-wise refresh do not combine (the refreshed tokens have no "
+                             "derivative history)")
+        if any(d != 0 for d in self._batch_dim):
+            raise ValueError("token-wise refresh needs blocks with batch on dim 0 and tokens on dim 1")
+        if getattr(self.plan, "wants_probe", False):
+            attn = [n for n, kd, p in zip(self.branch_names, self.branch_kinds, self._probe)
+                    if "attn" in kd and p is None]
+            if attn or not any(p is not None for p in self._probe):
+                raise ValueError(f"plan {self.plan.describe()} scores tokens by attention, but the block family "
+                                 f"declares no attention probe (BranchSpec.probe) for {attn[:3] or 'any branch'}; "
+                                 "use a score that needs no attention maps (tts.tokens.duca)")
 
     # ------------------------------------------------------------------ install / remove
     def _build_owners(self) -> dict[nn.Module, Hashable]:
@@ -366,6 +397,7 @@ class Accelerator:
             self._episode_batch = batch
         self._batch = batch
         self._store = self.plan.may_reuse
+        self._want_probe = bool(getattr(self.plan, "wants_probe", False))
         self.plan.begin_call(len(self.calls), batch)
         if len(self.calls) >= self.max_records:
             self.calls.pop(0)
@@ -461,10 +493,17 @@ class Accelerator:
             return self._run_soft(b, fn, batched)
         code = self._row[b]
         if code == COMPUTE:
-            d = fn(*[a() if type(a) is Lazy else a for a in batched])
+            args = [a() if type(a) is Lazy else a for a in batched]
+            if self._want_probe and self._probe[b] is not None:
+                d, received = self._probe[b](fn, *args)
+                self.plan.record_probe(self._site_of[b], received)
+            else:
+                d = fn(*args)
             if self._store:
                 self.cache.write(b, self._k, d)
             return d
+        if code == TOKENS:
+            return self._run_tokens(b, fn, batched)
         if code > 0:
             cached = self.cache.read(code, b, self._k)
             if cached is None:
@@ -501,6 +540,28 @@ class Accelerator:
             out.index_copy_(dim, idx, src.index_select(dim, idx))
         if cidx is not None and self._store:
             self.cache.write_rows(b, self._k, cidx, d, dim)
+        return out
+
+    def _run_tokens(self, b: int, fn: Callable, batched: tuple) -> torch.Tensor:
+        """Recompute the plan's chosen tokens of branch b, keep the cached output for the others."""
+        cached = self.cache.read(TIMESTEP, b, self._k)
+        if cached is None:
+            raise RuntimeError(f"internal: empty timestep cache for branch {self.branch_names[b]}")
+        B, N = cached.shape[0], cached.shape[1]
+        idx = self.plan.select_tokens(b, self._site_of[b], self._k, cached)  # [B, m]
+
+        def pick(a: Any) -> Any:
+            if type(a) is Lazy:
+                a = a()
+            if isinstance(a, torch.Tensor) and a.dim() >= 3 and a.shape[0] == B and a.shape[1] == N:
+                return a.gather(1, idx.view(B, -1, *([1] * (a.dim() - 2))).expand(-1, -1, *a.shape[2:]))
+            return a
+
+        d = fn(*[pick(a) for a in batched])
+        out = cached.scatter(1, idx.view(B, -1, *([1] * (d.dim() - 2))).expand_as(d), d)
+        self.cache.write(b, self._k, out)
+        work = self.calls[-1].token_work
+        work[b] = work.get(b, 0.0) + idx.shape[1] / N
         return out
 
     def _run_soft(self, b: int, fn: Callable, batched: tuple) -> torch.Tensor:

@@ -10,6 +10,8 @@ code  name        meaning
                   (it wraps around to the previous step's last blocks: "zig-zag")
 2     timestep    reuse this branch at the most recent step of this call where it was computed
 3     rollout     reuse this branch at the same step index in the previous sampling call of the episode
+4     tokens      recompute only some tokens of a token-wise branch, the rest from the timestep cache
+                  (token-refresh plans, :mod:`tts.tokens`; not a pruner option)
 ====  ==========  ==================================================================================
 
 A plan never needs to know the number of steps in advance: the engine asks it for step ``k`` as the
@@ -28,6 +30,7 @@ __all__ = [
     "FORWARD",
     "TIMESTEP",
     "ROLLOUT",
+    "TOKENS",
     "DIRECTIONS",
     "CODE_NAMES",
     "Plan",
@@ -43,9 +46,9 @@ __all__ = [
     "check_sparsity",
 ]
 
-COMPUTE, FORWARD, TIMESTEP, ROLLOUT = 0, 1, 2, 3
+COMPUTE, FORWARD, TIMESTEP, ROLLOUT, TOKENS = 0, 1, 2, 3, 4
 DIRECTIONS = {"forward": FORWARD, "timestep": TIMESTEP, "rollout": ROLLOUT}
-CODE_NAMES = ("compute", "forward", "timestep", "rollout")
+CODE_NAMES = ("compute", "forward", "timestep", "rollout", "tokens")
 _LETTERS = {"C": COMPUTE, "F": FORWARD, "T": TIMESTEP, "R": ROLLOUT}
 
 

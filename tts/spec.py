@@ -46,11 +46,16 @@ class BranchSpec:
     name: label shown in summaries (``"self_attn"``).
     kind: branch type; the *forward* direction reuses the latest computed branch of the same kind.
     modules: attribute paths of the block's submodules that only this branch uses (FLOPs attribution).
+    probe: optional, for self-attention branches: ``probe(fn, block, *args) -> (delta, received)`` runs
+        the branch (``fn(*args)``, same output) and also returns the attention each token receives
+        [B, N] (mean over heads and queries). Token-refresh plans with attention scores (ToCa,
+        :mod:`tts.tokens`) ask for it at full-compute steps.
     """
 
     name: str
     kind: str
     modules: tuple[str, ...] = ()
+    probe: Optional[Callable[..., Any]] = None
 
 
 @dataclass(frozen=True)

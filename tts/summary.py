@@ -7,11 +7,11 @@ from typing import Hashable, Optional, Sequence
 import torch
 
 from .flops import OTHER
-from .plans import CODE_NAMES, COMPUTE
+from .plans import CODE_NAMES, COMPUTE, TOKENS
 
 __all__ = ["CallRecord", "Summary"]
 
-_LETTER = "CFTR"
+_LETTER = "CFTRP"  # P: partial (token-wise refresh)
 
 
 @dataclass
@@ -24,6 +24,7 @@ class CallRecord:
     fallbacks: int = 0
     timing: dict[str, float] = field(default_factory=dict)  # seconds: encoder, pruner, wait, decoder, total
     pruner_macs: float = 0.0  # MACs of the pruner in this call (whole batch)
+    token_work: dict[int, float] = field(default_factory=dict)  # branch -> sum of token fractions refreshed
 
     def decisions(self) -> torch.Tensor:
         """[steps, batch, num_branches] int8."""
@@ -77,10 +78,12 @@ class Summary:
         dense = K * B * (other + float(branch.sum()) + float(shared.sum()))
         computed = (d == COMPUTE).to(torch.float64)  # [K, B, nb]
         realised = K * B * other + float((computed.sum(1) * branch).sum())
+        # token-wise refresh: the refreshed fraction of the branch's tokens, for the whole batch
+        realised += B * sum(frac * float(branch[b]) for b, frac in call.token_work.items())
         # a block's shared part runs (for the whole batch) when any of its branches computes
         site = torch.tensor(self.site_of_branch)
         site_active = torch.zeros(K, self.num_sites, dtype=torch.float64)
-        site_active.index_add_(1, site, computed.amax(1))
+        site_active.index_add_(1, site, ((d == COMPUTE) | (d == TOKENS)).to(torch.float64).amax(1))
         realised += float(((site_active > 0).to(torch.float64) * shared).sum()) * B
         return dense, realised
 
@@ -177,6 +180,7 @@ class Summary:
         lines.append("  compute fraction per branch (last call):")
         for name, f in zip(self.branch_names, frac.tolist()):
             lines.append(f"    {name:<{width}}  {f:6.1%}")
-        lines.append("  decisions per step, sample 0 (C compute, F forward, T timestep, R rollout):")
+        lines.append("  decisions per step, sample 0 (C compute, F forward, T timestep, R rollout, "
+                     "P token-wise partial refresh):")
         lines.append(self.grid(last))
         return "\n".join(lines)
