@@ -47,6 +47,7 @@ import argparse
 import dataclasses
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -374,6 +375,8 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     if args.ref:
         import fid
 
+        if device.type == "cpu" and args.threads is None:  # the other processes are done: use every core
+            torch.set_num_threads(os.cpu_count() or 1)
         t0 = time.perf_counter()
         inception = fid.load_inception(args.inception, device=str(device))
         progress = not args.no_progress

@@ -149,3 +149,32 @@ def test_token_plan_errors():
         TokenRefreshPlan(4, 0.2, score="random")
     with pytest.raises(ValueError, match="no branch of kind"):
         tts.accelerate(model, ("timestep",), plan=toca(4, 0.2, token_kinds=("ffn",)))
+
+
+def test_imagenet_cli_token_methods(tmp_path):
+    import argparse
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
+    import imagenet
+
+    base = dict(method="toca", sparsity=None, fresh_ratio=None, pruner=None, plan=None, fora_n=6,
+                num_samples=4, batch=2, steps=10, out=tmp_path / "x.npz")
+    with pytest.raises(ValueError, match="exactly one of --fresh-ratio and --sparsity"):
+        imagenet.check_args(argparse.Namespace(**base))
+    with pytest.raises(ValueError, match="only used by --method toca"):
+        imagenet.check_args(argparse.Namespace(**{**base, "method": "fora", "fresh_ratio": 0.1}))
+    model = _model()
+    args = argparse.Namespace(**{**base, "method": "duca", "sparsity": 0.8})
+    imagenet.check_args(args)
+    acc = imagenet.build_accelerator(model, args)
+    try:
+        plan = acc.plan
+        assert plan.alternate and plan.n == 6
+        r = fresh_ratio_for(0.8, 6, imagenet.mlp_share(model), alternate=True)
+        assert plan.fresh_ratio == pytest.approx(r)
+        # the MLP share of the tiny DiT (hidden 32, 16 tokens, mlp ratio 4): 256 / (256 + 128 + 32)
+        assert imagenet.mlp_share(model) == pytest.approx(2 * 32 * 128 / (2 * 32 * 128 + 4 * 32 * 32 + 2 * 16 * 32))
+    finally:
+        acc.remove()

@@ -1,0 +1,117 @@
+"""Wall-clock of one DiT sampling call, every method against dense, in one process.
+
+    python eval/image_latency.py --model checkpoints/digits_dit --pruner checkpoints/pruners/digits_tts_0.8 \
+        --plan results/schedules/digits_bac_0.8.json --sparsity 0.8 --batch 1 16 --out results/image/latency.json
+
+Per batch size B (images; CFG doubles the rows) and trial, every method samples the same B labels
+from the same noise (DDIM ``--steps``, guidance ``--cfg``) once, in a rotating order; dense is the
+untouched model. Speed-up = dense median / method median over ``--trials``. The methods and their
+settings are eval/imagenet.py's (``build_accelerator``), so the numbers belong to the FID table's rows.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import parse_args, provenance, write_json  # noqa: E402
+from imagenet import build_accelerator, sample_noise  # noqa: E402
+
+from tts.adapters.dit import load_dit, sample_dit  # noqa: E402
+
+# (label, eval/imagenet.py arguments): the rows of scripts/image_table.sh
+METHODS = {
+    "fora_n5": dict(method="fora", fora_n=5),
+    "taylorseer_n5_o2": dict(method="taylorseer", fora_n=5, taylor_order=2),
+    "toca_n6": dict(method="toca", fora_n=6, use_sparsity=True),
+    "duca_n6": dict(method="duca", fora_n=6, use_sparsity=True),
+    "static_bac": dict(method="static"),
+    "tts": dict(method="tts", use_sparsity=True),
+}
+
+
+def method_args(name: str, args: argparse.Namespace) -> argparse.Namespace:
+    spec = dict(METHODS[name])
+    use_sparsity = spec.pop("use_sparsity", False)
+    ns = argparse.Namespace(method=None, fora_n=5, taylor_order=1, fresh_ratio=None, plan=args.plan,
+                            pruner=str(args.pruner) if args.pruner else None,
+                            sparsity=args.sparsity if use_sparsity else None)
+    for k, v in spec.items():
+        setattr(ns, k, v)
+    return ns
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", required=True)
+    ap.add_argument("--pruner", type=Path, default=None, help="for the tts row")
+    ap.add_argument("--plan", default=None, help="searched schedule, for the static_bac row")
+    ap.add_argument("--sparsity", type=float, default=0.8)
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--cfg", type=float, default=1.5)
+    ap.add_argument("--batch", type=int, nargs="+", default=[1, 16])
+    ap.add_argument("--trials", type=int, default=7)
+    ap.add_argument("--out", type=Path, required=True)
+    args = parse_args(ap, argv)
+    names = [m for m in args.methods.split(",") if m]
+    unknown = [m for m in names if m not in METHODS]
+    if unknown:
+        raise SystemExit(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
+    if "tts" in names and args.pruner is None:
+        names.remove("tts")
+    if "static_bac" in names and args.plan is None:
+        names.remove("static_bac")
+    dense = load_dit(args.model).eval()
+    models = {"dense": (dense, None)}
+    for name in names:
+        m = load_dit(args.model).eval()
+        models[name] = (m, build_accelerator(m, method_args(name, args)))
+    size, C, n_cls = dense.config.input_size, dense.in_channels, dense.config.num_classes
+    rows = []
+    for B in args.batch:
+        labels = torch.arange(B) % n_cls
+        noise = sample_noise(12345, range(B), (C, size, size))
+        times: dict[str, list[float]] = {k: [] for k in models}
+        order = list(models)
+        for trial in tqdm(range(args.trials + 1), desc=f"latency batch {B}"):
+            for name in order[trial % len(order):] + order[:trial % len(order)]:
+                model, acc = models[name]
+                t0 = time.perf_counter()
+                sample_dit(model, labels, steps=args.steps, cfg_scale=args.cfg, noise=noise)
+                if trial:  # trial 0 warms up (allocator, MAC profiling of the first shape)
+                    times[name].append(time.perf_counter() - t0)
+        md = float(np.median(times["dense"]))
+        row = {"batch": B, "dense_ms": md * 1e3, "methods": {}}
+        for name in names:
+            model, acc = models[name]
+            s = acc.summary()
+            last = s.calls[-1]
+            macs_dense, macs_real = s.macs(last)
+            mf = float(np.median(times[name]))
+            row["methods"][name] = {
+                "plan": acc.plan.describe(), "ms": mf * 1e3, "speedup": md / mf,
+                "macs_ratio": macs_dense / max(macs_real + last.pruner_macs, 1.0),
+                "sparsity_decisions": s.sparsity_of(last),
+            }
+            print(f"batch {B}: {name:18s} {mf * 1e3:8.1f} ms vs dense {md * 1e3:8.1f} ms -> {md / mf:5.2f}x "
+                  f"(MACs {row['methods'][name]['macs_ratio']:.2f}x)")
+        rows.append(row)
+    res = {"provenance": provenance(seeds={"noise": "sample_noise(12345, range(B))"}), "model": args.model,
+           "steps": args.steps, "cfg_scale": args.cfg, "sparsity": args.sparsity, "trials": args.trials,
+           "torch_threads": torch.get_num_threads(),
+           "protocol": "same labels and noise for every method; rotating order per trial; trial 0 untimed; medians",
+           "rows": rows}
+    write_json(args.out, res)
+    print(f"wrote {args.out}")
+    return res
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# The image table (issue 5) on the bundled digits DiT, from scratch or resuming: every step whose output
+# exists is skipped (FORCE=1 redoes them). ~1 h on 2 CPU cores. Writes results/image/*.{npz,json,png},
+# results/image/TABLE.md and the README's image table.
+set -euo pipefail
+source "$(dirname "$0")/env.sh"
+RHO=0.8
+run() {  # run NAME ARGS...: one eval/imagenet.py run (2 processes), skipped if its JSON exists
+  local name=$1; shift
+  if [ -f "results/image/digits_${name}.json" ] && [ -z "${FORCE:-}" ]; then echo "[skip] $name"; return; fi
+  echo "[run] $name $*"; bash scripts/image_run.sh "$name" "$@"
+}
+[ -f data/digits16.npz ] || python eval/train_dit.py --export-ref data/digits16.npz
+run dense --method dense
+run fora_n5 --method fora --fora-n 5
+run taylorseer_n5_o2 --method taylorseer --fora-n 5 --taylor-order 2
+run toca_n6 --method toca --fora-n 6 --sparsity $RHO
+run duca_n6 --method duca --fora-n 6 --sparsity $RHO
+[ -f results/schedules/digits_bac_$RHO.json ] || python eval/search_static.py --dit checkpoints/digits_dit \
+    --sparsity $RHO --steps 50 --cfg 1.5 --out results/schedules/digits_bac_$RHO.json
+run static_bac --method static --plan results/schedules/digits_bac_$RHO.json
+if [ ! -f checkpoints/pruners/digits_tts_$RHO.json ] || [ -n "${FORCE:-}" ]; then
+  python eval/train_image_pruner.py --model checkpoints/digits_dit --out checkpoints/pruners/digits_tts_$RHO \
+      --sparsity $RHO --prior results/schedules/digits_bac_$RHO.json --val-mode budget --threads 2 \
+      --run-dir runs/digits_tts_$RHO --resume
+fi
+run tts --method tts --pruner checkpoints/pruners/digits_tts_$RHO --sparsity $RHO
+[ -f results/image/latency.json ] && [ -z "${FORCE:-}" ] || python eval/image_latency.py --model checkpoints/digits_dit \
+    --pruner checkpoints/pruners/digits_tts_$RHO --plan results/schedules/digits_bac_$RHO.json --sparsity $RHO \
+    --out results/image/latency.json
+python eval/tables.py
