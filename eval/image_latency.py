@@ -33,14 +33,17 @@ METHODS = {
     "duca_n6": dict(method="duca", fora_n=6, use_sparsity=True),
     "static_bac": dict(method="static"),
     "tts": dict(method="tts", use_sparsity=True),
+    "static_bac_taylor2": dict(method="static", forecast=2),
+    "tts_taylor2": dict(method="tts", use_sparsity=True, forecast=2, pruner="taylor"),
 }
 
 
 def method_args(name: str, args: argparse.Namespace) -> argparse.Namespace:
     spec = dict(METHODS[name])
     use_sparsity = spec.pop("use_sparsity", False)
-    ns = argparse.Namespace(method=None, fora_n=5, taylor_order=1, fresh_ratio=None, plan=args.plan,
-                            pruner=str(args.pruner) if args.pruner else None,
+    pruner = args.pruner_taylor if spec.pop("pruner", None) == "taylor" else args.pruner
+    ns = argparse.Namespace(method=None, fora_n=5, taylor_order=1, fresh_ratio=None, plan=args.plan, forecast=0,
+                            pruner=str(pruner) if pruner else None,
                             sparsity=args.sparsity if use_sparsity else None)
     for k, v in spec.items():
         setattr(ns, k, v)
@@ -51,7 +54,8 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", required=True)
     ap.add_argument("--pruner", type=Path, default=None, help="for the tts row")
-    ap.add_argument("--plan", default=None, help="searched schedule, for the static_bac row")
+    ap.add_argument("--pruner-taylor", type=Path, default=None, help="pruner trained with --forecast 2 (tts_taylor2 row)")
+    ap.add_argument("--plan", default=None, help="searched schedule, for the static_bac rows")
     ap.add_argument("--sparsity", type=float, default=0.8)
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--steps", type=int, default=50)
@@ -64,10 +68,9 @@ def main(argv=None) -> dict:
     unknown = [m for m in names if m not in METHODS]
     if unknown:
         raise SystemExit(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
-    if "tts" in names and args.pruner is None:
-        names.remove("tts")
-    if "static_bac" in names and args.plan is None:
-        names.remove("static_bac")
+    missing = {"tts": args.pruner, "tts_taylor2": args.pruner_taylor, "static_bac": args.plan,
+               "static_bac_taylor2": args.plan}
+    names = [m for m in names if m not in missing or missing[m] is not None]
     dense = load_dit(args.model).eval()
     models = {"dense": (dense, None)}
     for name in names:

@@ -120,16 +120,18 @@ def build_accelerator(model: DiT, args: argparse.Namespace) -> Optional["tts.Acc
     if args.method in ("toca", "duca"):
         make = tts.tokens.toca if args.method == "toca" else tts.tokens.duca
         return tts.accelerate(model, ("timestep",), plan=make(args.fora_n, fresh_ratio(model, args)))
+    forecast = getattr(args, "forecast", 0)
     if args.method == "static":  # a searched schedule (eval/search_static.py --model ...)
         doc = json.loads(Path(args.plan).read_text())
-        return tts.accelerate(model, tuple(doc["directions"]), plan=tts.plans.from_tensor(doc["grid"]))
+        return tts.accelerate(model, tuple(doc["directions"]), plan=tts.plans.from_tensor(doc["grid"]),
+                              forecast=forecast)
     if args.method == "uniform":
         return tts.accelerate(model, ("timestep",), plan=tts.plans.uniform(args.sparsity, "timestep"))
     pruner = tts.load_pruner(args.pruner)
     if pruner.config.memory_dim != model.config.hidden_size:
         raise ValueError(f"pruner {args.pruner} reads memory of width {pruner.config.memory_dim}, this DiT's "
                          f"condition memory has width {model.config.hidden_size}: it belongs to another model")
-    return tts.accelerate(model, pruner.config.directions, pruner=pruner, sparsity=args.sparsity)
+    return tts.accelerate(model, pruner.config.directions, pruner=pruner, sparsity=args.sparsity, forecast=forecast)
 
 
 def mlp_share(model: DiT) -> float:
@@ -163,6 +165,8 @@ def check_args(args: argparse.Namespace) -> None:
         raise ValueError(f"--sparsity does not apply to --method {args.method}")
     if args.pruner and args.method != "tts":
         raise ValueError("--pruner is only used by --method tts")
+    if getattr(args, "forecast", 0) and args.method not in ("static", "tts"):
+        raise ValueError("--forecast applies to --method static / tts (taylorseer has --taylor-order)")
     if args.method in ("fora", "taylorseer", "toca", "duca") and args.fora_n < 1:
         raise ValueError("--fora-n must be >= 1")
     for name in ("num_samples", "batch", "steps"):
@@ -233,6 +237,8 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
                     help="toca / duca: fraction of MLP tokens recomputed at a refresh step (or give --sparsity)")
     ap.add_argument("--taylor-order", type=int, default=1, help="taylorseer: forecast order O")
     ap.add_argument("--plan", default=None, help="static: a searched schedule JSON (eval/search_static.py)")
+    ap.add_argument("--forecast", type=int, default=0,
+                    help="static / tts: TaylorSeer-style forecast of order O for timestep reuse (0 = plain reuse)")
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--cfg", type=float, default=1.5, help="classifier-free guidance scale (1 = none)")
     ap.add_argument("--scheduler", choices=("ddim", "ddpm"), default="ddim",
@@ -340,6 +346,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
         "sparsity_target": args.sparsity,
         "fora_n": args.fora_n if args.method in ("fora", "taylorseer", "toca", "duca") else None,
         "taylor_order": args.taylor_order if args.method == "taylorseer" else None,
+        "forecast": args.forecast,
         "fresh_ratio": fresh_ratio(model, args) if args.method in ("toca", "duca") else None,
         "pruner": args.pruner,
         "steps": args.steps,

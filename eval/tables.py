@@ -73,7 +73,8 @@ def latency_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
-IMAGE_ROWS = ("dense", "fora_n5", "taylorseer_n5_o2", "toca_n6", "duca_n6", "static_bac", "tts")
+IMAGE_ROWS = ("dense", "fora_n5", "taylorseer_n5_o2", "toca_n6", "duca_n6", "static_bac", "tts",
+              "static_bac_taylor2", "tts_taylor2")
 
 
 def image_table(folder: Path) -> str:

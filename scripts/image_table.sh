@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The image table (issue 5) on the bundled digits DiT, from scratch or resuming: every step whose output
-# exists is skipped (FORCE=1 redoes them). ~1 h on 2 CPU cores. Writes results/image/*.{npz,json,png},
+# exists is skipped (FORCE=1 redoes them). ~1.5 h on 2 CPU cores. Writes results/image/*.{npz,json,png},
 # results/image/TABLE.md and the README's image table.
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
@@ -19,13 +19,20 @@ run duca_n6 --method duca --fora-n 6 --sparsity $RHO
 [ -f results/schedules/digits_bac_$RHO.json ] || python eval/search_static.py --dit checkpoints/digits_dit \
     --sparsity $RHO --steps 50 --cfg 1.5 --out results/schedules/digits_bac_$RHO.json
 run static_bac --method static --plan results/schedules/digits_bac_$RHO.json
-if [ ! -f checkpoints/pruners/digits_tts_$RHO.json ] || [ -n "${FORCE:-}" ]; then
-  python eval/train_image_pruner.py --model checkpoints/digits_dit --out checkpoints/pruners/digits_tts_$RHO \
-      --sparsity $RHO --prior results/schedules/digits_bac_$RHO.json --val-mode budget --threads 2 \
-      --run-dir runs/digits_tts_$RHO --resume
-fi
+train_pruner() {  # train_pruner NAME ARGS...: the image pruner (resumable), skipped if its checkpoint exists
+  local name=$1; shift
+  if [ -f "checkpoints/pruners/${name}.json" ] && [ -z "${FORCE:-}" ]; then echo "[skip] $name"; return; fi
+  python eval/train_image_pruner.py --model checkpoints/digits_dit --out "checkpoints/pruners/${name}" \
+      --sparsity $RHO --prior results/schedules/digits_bac_$RHO.json --val-mode budget --n-train 128 --n-val 32 \
+      --epochs 4 --threads 2 --run-dir "runs/${name}" --resume "$@"
+}
+train_pruner digits_tts_$RHO
 run tts --method tts --pruner checkpoints/pruners/digits_tts_$RHO --sparsity $RHO
+# beyond the paper: the pruner trained and run with a TaylorSeer-style forecast of timestep reuse
+train_pruner digits_tts_taylor2_$RHO --forecast 2
+run tts_taylor2 --method tts --pruner checkpoints/pruners/digits_tts_taylor2_$RHO --sparsity $RHO --forecast 2
+run static_bac_taylor2 --method static --plan results/schedules/digits_bac_$RHO.json --forecast 2
 [ -f results/image/latency.json ] && [ -z "${FORCE:-}" ] || python eval/image_latency.py --model checkpoints/digits_dit \
-    --pruner checkpoints/pruners/digits_tts_$RHO --plan results/schedules/digits_bac_$RHO.json --sparsity $RHO \
-    --out results/image/latency.json
+    --pruner checkpoints/pruners/digits_tts_$RHO --pruner-taylor checkpoints/pruners/digits_tts_taylor2_$RHO \
+    --plan results/schedules/digits_bac_$RHO.json --sparsity $RHO --out results/image/latency.json
 python eval/tables.py
