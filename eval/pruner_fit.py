@@ -43,7 +43,7 @@ def add_training_args(ap: argparse.ArgumentParser, *, sparsity: float, direction
     ap.add_argument("--forecast", type=int, default=0,
                     help="train (and validate) with TaylorSeer-style forecasting timestep reuse of this order; "
                          "use the same --forecast at test time")
-    ap.add_argument("--prior", type=Path, default=None,
+    ap.add_argument("--prior", type=Path, default=None,  # a schedule JSON, or every_n:N (image pruner)
                     help="a searched static schedule (eval/search_static.py JSON) whose decisions become fixed "
                          "prior logits; the pruner (head zero-initialised) learns per-sample corrections")
     ap.add_argument("--val-mode", choices=["argmax", "budget"], default="argmax",
@@ -53,8 +53,16 @@ def add_training_args(ap: argparse.ArgumentParser, *, sparsity: float, direction
     ap.add_argument("--resume", action="store_true")
 
 
-def read_grid(path: Path) -> torch.Tensor:
-    """The [K, nb] decision grid of a searched schedule (eval/search_static.py JSON)."""
+def read_grid(path: Path, steps: Optional[int] = None, branches: Optional[int] = None) -> torch.Tensor:
+    """The [K, nb] decision grid of a searched schedule (eval/search_static.py JSON), or of a FORA
+    interval given as ``every_n:N`` (compute every branch at steps k % N == 0, timestep reuse else)."""
+    spec = str(path)
+    if spec.startswith("every_n:"):
+        if steps is None or branches is None:
+            raise ValueError("an every_n:N prior needs the number of steps and branches")
+        n = int(spec.split(":", 1)[1])
+        codes = [[tts.plans.COMPUTE if k % n == 0 else tts.plans.TIMESTEP] * branches for k in range(steps)]
+        return torch.tensor(codes, dtype=torch.int8)
     return tts.plans.from_tensor(json.loads(Path(path).read_text())["grid"]).decisions[0]
 
 

@@ -244,3 +244,15 @@ def test_image_pruner_trains_end_to_end_and_static_schedule_search(tmp_path):
     with tts.accelerate(load_dit(tmp_path / "tiny"), pr.config.directions, pruner=pr, sparsity=0.5) as acc:
         sample_dit(acc.target.denoiser, torch.arange(2), steps=6, cfg_scale=1.5, generator=torch.Generator().manual_seed(0))
         assert acc.summary().sparsity_of(acc.summary().calls[-1]) == pytest.approx(0.5)
+
+
+def test_every_n_prior_grid():
+    sys.path.insert(0, str(REPO / "eval"))
+    from pruner_fit import read_grid
+
+    g = read_grid(Path("every_n:5"), steps=12, branches=4)
+    assert g.shape == (12, 4)
+    assert g[0].eq(0).all() and g[5].eq(0).all() and g[10].eq(0).all()
+    assert int(g.eq(0).sum()) == 3 * 4 and int(g.eq(2).sum()) == 9 * 4
+    with pytest.raises(ValueError, match="number of steps"):
+        read_grid(Path("every_n:5"))
