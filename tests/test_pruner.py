@@ -361,3 +361,16 @@ def test_a_call_that_skips_the_condition_encoder_gets_no_stale_decisions():
         with pytest.raises(RuntimeError, match="no condition memory"):
             for t in ts:  # DP's stock loop: the encoder runs inside forward, the pruner never sees it
                 model(x, t, cond)
+
+
+def test_checkpoint_names_with_dots_keep_them(tmp_path):
+    from tts.pruner import PrunerConfig, build_pruner, load_pruner, save_pruner
+
+    p = build_pruner(PrunerConfig(memory_dim=8, num_branches=4, directions=("timestep",), hidden=8, steps=3))
+    save_pruner(p, tmp_path / "tts_0.8")
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["tts_0.8.json", "tts_0.8.safetensors"]
+    q = load_pruner(tmp_path / "tts_0.8")
+    for (k, a), b in zip(p.state_dict().items(), q.state_dict().values()):
+        assert torch.equal(a, b), k
+    save_pruner(p, tmp_path / "tts_0.9")
+    assert load_pruner(tmp_path / "tts_0.9.json").config == p.config

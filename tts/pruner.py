@@ -394,24 +394,36 @@ class PrunerPlan(Plan):
 
 
 # -------------------------------------------------------------------- checkpoints
+def _pruner_files(path: Path, existing: bool = False) -> tuple[Path, Path]:
+    """(<path>.safetensors, <path>.json): the suffix is appended, so names with dots (``tts_0.8``)
+    keep them; a path given with either suffix names the pair. ``existing``: fall back to the pair
+    that older versions wrote for dotted names (the part after the last dot replaced)."""
+    path = Path(path)
+    if path.suffix in (".json", ".safetensors"):
+        path = path.with_suffix("")
+    pair = (Path(f"{path}.safetensors"), Path(f"{path}.json"))
+    if existing and not pair[1].exists() and path.with_suffix(".json").exists():
+        return path.with_suffix(".safetensors"), path.with_suffix(".json")
+    return pair
+
+
 def save_pruner(pruner: PrunerModule, path: Path, metadata: Optional[dict] = None) -> None:
     """``<path>.safetensors`` (weights) + ``<path>.json`` (config and provenance), atomically."""
     from safetensors.torch import save_file
 
-    path = Path(path)
+    weights, meta = _pruner_files(path)
     state = {k: v.detach().contiguous().cpu() for k, v in pruner.state_dict().items()}
-    with atomic_path(path.with_suffix(".safetensors")) as tmp:
+    with atomic_path(weights) as tmp:
         save_file(state, str(tmp))
     doc = {"format": "tts-pruner-v1", "config": asdict(pruner.config), "metadata": metadata or {}}
-    with atomic_path(path.with_suffix(".json")) as tmp:
+    with atomic_path(meta) as tmp:
         Path(tmp).write_text(json.dumps(doc, indent=2))
 
 
 def load_pruner(path: Path) -> PrunerModule:
     from safetensors.torch import load_file
 
-    path = Path(path)
-    meta = path.with_suffix(".json")
+    weights, meta = _pruner_files(path, existing=True)
     if not meta.exists():
         raise FileNotFoundError(f"no pruner config at {meta} (expected <path>.json next to <path>.safetensors)")
     doc = json.loads(meta.read_text())
@@ -420,7 +432,7 @@ def load_pruner(path: Path) -> PrunerModule:
     cfg = doc["config"]
     cfg["directions"] = tuple(cfg["directions"])
     pruner = build_pruner(PrunerConfig(**cfg))
-    pruner.load_state_dict(load_file(str(path.with_suffix(".safetensors"))))
+    pruner.load_state_dict(load_file(str(weights)))
     pruner.metadata = doc.get("metadata", {})
     return pruner.eval()
 
