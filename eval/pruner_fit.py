@@ -46,6 +46,11 @@ def add_training_args(ap: argparse.ArgumentParser, *, sparsity: float, direction
     ap.add_argument("--prior", type=Path, default=None,  # a schedule JSON, or every_n:N (image pruner)
                     help="a searched static schedule (eval/search_static.py JSON) whose decisions become fixed "
                          "prior logits; the pruner (head zero-initialised) learns per-sample corrections")
+    ap.add_argument("--train-budget", action="store_true",
+                    help="training gates take the exact-budget decision (top 1 - sparsity by compute "
+                         "probability) in the forward: sparsity fixed, the pruner learns the ranking")
+    ap.add_argument("--prior-margin", type=float, default=3.0,
+                    help="logit of the prior's option (smaller: the pruner can move away from it sooner)")
     ap.add_argument("--val-mode", choices=["argmax", "budget"], default="argmax",
                     help="test-time rule used for validation and checkpoint selection (budget: exactly --sparsity)")
     ap.add_argument("--seed", type=int, default=0)

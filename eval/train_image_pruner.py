@@ -73,8 +73,8 @@ def main(argv=None) -> dict:
     pruner = build_pruner(PrunerConfig(memory_dim=cfg.hidden_size, num_branches=2 * cfg.depth, directions=directions,
                                        hidden=args.hidden, steps=args.steps, prior=args.prior is not None))
     if args.prior is not None:
-        pruner.set_prior(read_grid(args.prior, steps=args.steps, branches=2 * cfg.depth))
-    train_plan = PrunerPlan(pruner, mode="ste")
+        pruner.set_prior(read_grid(args.prior, steps=args.steps, branches=2 * cfg.depth), margin=args.prior_margin)
+    train_plan = PrunerPlan(pruner, mode="ste", sparsity=args.sparsity if args.train_budget else None)
 
     def run(plan, idx, opt=None) -> dict:
         labels = torch.as_tensor(idx % n_cls)

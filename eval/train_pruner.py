@@ -126,7 +126,7 @@ def main(argv=None) -> None:
         kind="static" if args.static else "transformer", steps=K, prior=args.prior is not None,
         head_bias=[float(x) for x in args.head_bias.split(",")] if args.head_bias else None))
     if args.prior is not None:
-        pruner.set_prior(read_grid(args.prior))
+        pruner.set_prior(read_grid(args.prior), margin=args.prior_margin)
     train_plan = PrunerPlan(pruner, mode="ste")
 
     def train_epoch(opt, rng, noise_rng, epoch):

@@ -374,3 +374,19 @@ def test_checkpoint_names_with_dots_keep_them(tmp_path):
         assert torch.equal(a, b), k
     save_pruner(p, tmp_path / "tts_0.9")
     assert load_pruner(tmp_path / "tts_0.9.json").config == p.config
+
+
+def test_budget_ste_gates_fix_the_sparsity_and_pass_gradients():
+    from tts.gates import budget_codes, budget_ste_gates
+
+    torch.manual_seed(0)
+    logits = torch.randn(3, 6, 4, 3, requires_grad=True)
+    hard, p = budget_ste_gates(logits, 0.75)
+    computed = hard.detach()[..., 0]
+    assert computed[:, 0].eq(1).all()  # step 0
+    assert computed.sum(dim=(1, 2)).eq(round(0.25 * 6 * 4)).all()  # exactly the budget per sample
+    # the forward equals the test-time exact-budget decision
+    codes = budget_codes(logits.detach(), [0, 1, 2], 0.75)
+    assert torch.equal(hard.detach().argmax(-1).to(torch.int8), codes)
+    (hard[..., 0] * torch.arange(6.0)[None, :, None]).sum().backward()
+    assert logits.grad is not None and logits.grad[:, 1:].abs().sum() > 0

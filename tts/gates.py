@@ -20,7 +20,7 @@ import torch
 
 from .plans import COMPUTE, check_sparsity
 
-__all__ = ["ste_gates", "argmax_codes", "budget_codes", "reuse_fraction"]
+__all__ = ["ste_gates", "budget_ste_gates", "argmax_codes", "budget_codes", "reuse_fraction"]
 
 
 def _force_first(p: torch.Tensor) -> torch.Tensor:
@@ -33,6 +33,32 @@ def ste_gates(logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(hard straight-through gates, soft probabilities), both [B, K, nb, O]."""
     p = _force_first(logits.float().softmax(-1))
     hard = torch.nn.functional.one_hot(p.argmax(-1), p.shape[-1]).to(p.dtype)
+    return hard - p.detach() + p, p
+
+
+def _budget_options(p: torch.Tensor, sparsity: float) -> torch.Tensor:
+    """Option per (sample, step, branch) computing exactly the top ``1 - sparsity`` by compute
+    probability (step 0 always), the most likely reuse direction elsewhere: [B, K, nb]."""
+    sparsity = check_sparsity(sparsity)
+    B, K, nb, O = p.shape
+    if O < 2:
+        raise ValueError("budget mode needs at least one reuse direction")
+    score = p[..., 0].detach().clone()
+    score[:, 0] = float("inf")  # step 0 always computes
+    keep = max(nb, min(K * nb, round((1.0 - sparsity) * K * nb)))
+    flat = score.reshape(B, K * nb)
+    top = flat.topk(keep, dim=1).indices
+    compute = torch.zeros_like(flat, dtype=torch.bool).scatter_(1, top, True).reshape(B, K, nb)
+    reuse_option = p[..., 1:].detach().argmax(-1) + 1
+    return torch.where(compute, torch.zeros_like(reuse_option), reuse_option)
+
+
+def budget_ste_gates(logits: torch.Tensor, sparsity: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Straight-through gates whose forward is the exact-budget decision (:func:`budget_codes`):
+    training sees the test-time rule, the realised sparsity is fixed, and the gradient only
+    re-ranks which branches compute. Returns (hard gates, soft probabilities), [B, K, nb, O]."""
+    p = _force_first(logits.float().softmax(-1))
+    hard = torch.nn.functional.one_hot(_budget_options(p, sparsity), p.shape[-1]).to(p.dtype)
     return hard - p.detach() + p, p
 
 
@@ -61,20 +87,7 @@ def argmax_codes(logits: torch.Tensor, codes: Codes) -> torch.Tensor:
 def budget_codes(logits: torch.Tensor, codes: Codes, sparsity: float) -> torch.Tensor:
     """Decision codes [B, K, nb] computing exactly ``round((1 - sparsity) * K * nb)`` branches per
     sample (never fewer than step 0's nb), ranked by compute probability."""
-    sparsity = check_sparsity(sparsity)
-    B, K, nb, O = logits.shape
-    if O < 2:
-        raise ValueError("budget mode needs at least one reuse direction")
-    p = logits.float().softmax(-1)
-    score = p[..., 0].clone()
-    score[:, 0] = float("inf")  # step 0 always computes
-    keep = max(nb, min(K * nb, round((1.0 - sparsity) * K * nb)))
-    flat = score.reshape(B, K * nb)
-    top = flat.topk(keep, dim=1).indices
-    compute = torch.zeros_like(flat, dtype=torch.bool).scatter_(1, top, True).reshape(B, K, nb)
-    reuse_option = logits[..., 1:].argmax(-1) + 1
-    option = torch.where(compute, torch.zeros_like(reuse_option), reuse_option)
-    return _to_codes(option, codes)
+    return _to_codes(_budget_options(logits.float().softmax(-1), sparsity), codes)
 
 
 assert COMPUTE == 0  # option 0 of every head is compute

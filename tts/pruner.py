@@ -30,7 +30,7 @@ from typing import Optional, Sequence, Union
 import torch
 import torch.nn as nn
 
-from .gates import argmax_codes, budget_codes, ste_gates
+from .gates import argmax_codes, budget_codes, budget_ste_gates, ste_gates
 from .io import atomic_path
 from .plans import COMPUTE, DIRECTIONS, TIMESTEP, Plan, check_directions, check_sparsity
 
@@ -239,9 +239,9 @@ class PrunerPlan(Plan):
                  parallel: Union[bool, str] = "auto"):
         if mode not in ("argmax", "budget", "ste"):
             raise ValueError(f"mode must be 'argmax', 'budget' or 'ste', got {mode!r}")
-        if mode == "budget":
-            if sparsity is None:
-                raise ValueError("mode='budget' needs sparsity=")
+        if mode == "budget" and sparsity is None:
+            raise ValueError("mode='budget' needs sparsity=")
+        if sparsity is not None:  # budget, or ste with the exact-budget forward (training)
             sparsity = check_sparsity(sparsity)
         self.pruner = pruner if mode == "ste" else pruner.eval()  # no dropout at test time
         self.mode = mode
@@ -273,7 +273,7 @@ class PrunerPlan(Plan):
             )
 
     def describe(self) -> str:
-        extra = f":{self.sparsity}" if self.mode == "budget" else ""
+        extra = f":{self.sparsity}" if self.sparsity is not None else ""
         return f"pruner[{self.mode}{extra}]({','.join(self.pruner.config.directions)})"
 
     # ---------------------------------------------------------------- engine interface
@@ -293,7 +293,9 @@ class PrunerPlan(Plan):
         if dense:
             return
         if self.mode == "ste":
-            self.gates, self.probs = ste_gates(self.pruner(memory))
+            logits = self.pruner(memory)
+            self.gates, self.probs = (ste_gates(logits) if self.sparsity is None
+                                      else budget_ste_gates(logits, self.sparsity))
             return
         memory = memory.detach()
         if not self.parallel:
