@@ -99,10 +99,23 @@ def image_table(folder: Path) -> str:
             ("1.00x | " if name == "dense" else
              f"{lat_rows[b]['methods'][name]['speedup']:.2f}x | " if name in lat_rows[b]["methods"] else "- | ")
             for b in batches)
-        rows.append(f"| {name} | {r['plan']} | {r['sparsity']:.3f} | {r['macs_ratio_with_pruner']:.2f}x | "
+        plan = r["plan"] + (f" + Taylor forecast O={_forecast_order(r)}" if _forecast_order(r) else "")
+        rows.append(f"| {name} | {plan} | {r['sparsity']:.3f} | {r['macs_ratio_with_pruner']:.2f}x | "
                     f"{r.get('fid', float('nan')):.2f} | {rel} | {r.get('sfid', float('nan')):.2f} | {speed}"
                     f"{r['s_per_image']:.4f} | `{r['provenance']['git_sha'][:10]}` |")
     return "\n".join(rows) + "\n"
+
+
+def _forecast_order(r: dict) -> int:
+    """Order of the Taylor forecast of a run (0: plain reuse), from its JSON or its command."""
+    if r.get("forecast"):
+        return int(r["forecast"])
+    if r.get("method") == "taylorseer":
+        if r.get("taylor_order"):
+            return int(r["taylor_order"])
+        cmd = r["provenance"].get("command", "").split()
+        return int(cmd[cmd.index("--taylor-order") + 1]) if "--taylor-order" in cmd else 1
+    return 0
 
 
 def sample_grids(folder: Path) -> list[Path]:
