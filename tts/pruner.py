@@ -396,17 +396,13 @@ class PrunerPlan(Plan):
 
 
 # -------------------------------------------------------------------- checkpoints
-def _pruner_files(path: Path, existing: bool = False) -> tuple[Path, Path]:
+def _pruner_files(path: Path) -> tuple[Path, Path]:
     """(<path>.safetensors, <path>.json): the suffix is appended, so names with dots (``tts_0.8``)
-    keep them; a path given with either suffix names the pair. ``existing``: fall back to the pair
-    that older versions wrote for dotted names (the part after the last dot replaced)."""
+    keep them; a path given with either suffix names the pair."""
     path = Path(path)
     if path.suffix in (".json", ".safetensors"):
         path = path.with_suffix("")
-    pair = (Path(f"{path}.safetensors"), Path(f"{path}.json"))
-    if existing and not pair[1].exists() and path.with_suffix(".json").exists():
-        return path.with_suffix(".safetensors"), path.with_suffix(".json")
-    return pair
+    return Path(f"{path}.safetensors"), Path(f"{path}.json")
 
 
 def save_pruner(pruner: PrunerModule, path: Path, metadata: Optional[dict] = None) -> None:
@@ -425,7 +421,7 @@ def save_pruner(pruner: PrunerModule, path: Path, metadata: Optional[dict] = Non
 def load_pruner(path: Path) -> PrunerModule:
     from safetensors.torch import load_file
 
-    weights, meta = _pruner_files(path, existing=True)
+    weights, meta = _pruner_files(path)
     if not meta.exists():
         raise FileNotFoundError(f"no pruner config at {meta} (expected <path>.json next to <path>.safetensors)")
     doc = json.loads(meta.read_text())
