@@ -347,7 +347,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
         "fora_n": args.fora_n if args.method in ("fora", "taylorseer", "toca", "duca") else None,
         "taylor_order": args.taylor_order if args.method == "taylorseer" else None,
         "forecast": args.forecast,
-        "fresh_ratio": fresh_ratio(model, args) if args.method in ("toca", "duca") else None,
+        "fresh_ratio": getattr(acc.plan, "fresh_ratio", None) if acc is not None else None,
         "pruner": args.pruner,
         "steps": args.steps,
         "scheduler": args.scheduler,
