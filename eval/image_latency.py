@@ -35,14 +35,17 @@ METHODS = {
     "tts": dict(method="tts", use_sparsity=True),
     "static_bac_taylor2": dict(method="static", forecast=2),
     "tts_taylor2": dict(method="tts", use_sparsity=True, forecast=2, pruner="taylor"),
+    "steps_o2": dict(method="static", forecast=2, plan="steps"),
+    "tts_steps_o2": dict(method="tts", use_sparsity=True, forecast=2, pruner="steps"),
 }
 
 
 def method_args(name: str, args: argparse.Namespace) -> argparse.Namespace:
     spec = dict(METHODS[name])
     use_sparsity = spec.pop("use_sparsity", False)
-    pruner = args.pruner_taylor if spec.pop("pruner", None) == "taylor" else args.pruner
-    ns = argparse.Namespace(method=None, fora_n=5, taylor_order=1, fresh_ratio=None, plan=args.plan, forecast=0,
+    pruner = {"taylor": args.pruner_taylor, "steps": args.pruner_steps, None: args.pruner}[spec.pop("pruner", None)]
+    plan = args.plan_steps if spec.pop("plan", None) == "steps" else args.plan
+    ns = argparse.Namespace(method=None, fora_n=5, taylor_order=1, fresh_ratio=None, plan=plan, forecast=0,
                             pruner=str(pruner) if pruner else None,
                             sparsity=args.sparsity if use_sparsity else None)
     for k, v in spec.items():
@@ -55,7 +58,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--model", required=True)
     ap.add_argument("--pruner", type=Path, default=None, help="for the tts row")
     ap.add_argument("--pruner-taylor", type=Path, default=None, help="pruner trained with --forecast 2 (tts_taylor2 row)")
+    ap.add_argument("--pruner-steps", type=Path, default=None,
+                    help="pruner started from the searched compute steps, with --forecast 2 (tts_steps_o2 row)")
     ap.add_argument("--plan", default=None, help="searched schedule, for the static_bac rows")
+    ap.add_argument("--plan-steps", default=None, help="searched compute steps (search_static.py --objective "
+                    "output --forecast 2), for the steps_o2 row")
     ap.add_argument("--sparsity", type=float, default=0.8)
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--steps", type=int, default=50)
@@ -69,7 +76,7 @@ def main(argv=None) -> dict:
     if unknown:
         raise SystemExit(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
     missing = {"tts": args.pruner, "tts_taylor2": args.pruner_taylor, "static_bac": args.plan,
-               "static_bac_taylor2": args.plan}
+               "static_bac_taylor2": args.plan, "steps_o2": args.plan_steps, "tts_steps_o2": args.pruner_steps}
     names = [m for m in names if m not in missing or missing[m] is not None]
     dense = load_dit(args.model).eval()
     models = {"dense": (dense, None)}

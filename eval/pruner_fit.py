@@ -51,6 +51,8 @@ def add_training_args(ap: argparse.ArgumentParser, *, sparsity: float, direction
                          "probability) in the forward: sparsity fixed, the pruner learns the ranking")
     ap.add_argument("--prior-margin", type=float, default=3.0,
                     help="logit of the prior's option (smaller: the pruner can move away from it sooner)")
+    ap.add_argument("--tie-branches", action="store_true",
+                    help="one decision per step for all branches (step-level pruner; use with a step-level prior)")
     ap.add_argument("--val-mode", choices=["argmax", "budget"], default="argmax",
                     help="test-time rule used for validation and checkpoint selection (budget: exactly --sparsity)")
     ap.add_argument("--seed", type=int, default=0)

@@ -4,12 +4,19 @@
         --sparsity 0.93 --out results/schedules/lift_bac_0.93.json
     python eval/search_static.py --dit checkpoints/digits_dit --sparsity 0.8 --steps 50 --cfg 1.5 \
         --out results/schedules/digits_bac_0.8.json         # a DiT: calibration samples (seed 1, not the eval's 0)
+    python eval/search_static.py --dit checkpoints/digits_dit --sparsity 0.8 --objective output --forecast 2 \
+        --out results/schedules/digits_steps_0.8.json       # whole steps placed by output error
 
 Runs dense calls on ``--calls`` recorded observation windows of the *training* trajectories (the
 first ``--episodes``; never the test seeds), measures per branch how much its output changes between
 denoising steps (:func:`tts.static_search.reuse_errors`) and picks per branch the compute steps that
 hide the least change (:func:`tts.static_search.search_schedule`). Writes the decision grid (one
 ``C``/``T`` string per step), usable as ``eval/robot.py --method static --plan file:PATH``.
+
+``--objective output`` searches instead one set of compute steps shared by every branch
+(:func:`tts.static_search.search_compute_steps`): the loss is the L1 between the final output
+(DiT sample / the policy's ``action_pred``) under the candidate schedule and the dense output from
+the same noise, on the calibration samples, with ``--forecast`` as it will be used at test time.
 """
 from __future__ import annotations
 
@@ -26,7 +33,8 @@ from common import provenance, write_json, parse_args  # noqa: E402
 from train_pruner import obs_dict  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
-from tts.static_search import reuse_errors, search_schedule  # noqa: E402
+import tts  # noqa: E402
+from tts.static_search import reuse_errors, search_compute_steps, search_schedule, steps_grid  # noqa: E402
 
 
 def policy_calibration(args):
@@ -38,11 +46,11 @@ def policy_calibration(args):
     policy = load_policy(args.checkpoint)
 
     def sample():
-        for s in range(0, len(pick), args.batch):
-            obs = obs_dict(policy, torch.as_tensor(windows[pick[s:s + args.batch]]))
-            policy.predict_action(obs, generator=torch.Generator().manual_seed(args.seed + s))
+        return torch.cat([policy.predict_action(obs_dict(policy, torch.as_tensor(windows[pick[s:s + args.batch]])),
+                                                generator=torch.Generator().manual_seed(args.seed + s))["action_pred"]
+                          for s in range(0, len(pick), args.batch)])
 
-    return policy, sample
+    return policy, sample, policy.cfg.num_inference_steps, 3 * policy.model.config.n_layer
 
 
 def dit_calibration(args):
@@ -55,11 +63,28 @@ def dit_calibration(args):
 
     def sample():
         g = torch.Generator().manual_seed(args.seed + 1)
-        for s in range(0, args.calls, args.batch):
-            labels = torch.arange(s, min(s + args.batch, args.calls)) % n_cls
-            sample_dit(model, labels, steps=args.steps, cfg_scale=args.cfg, generator=g)
+        return torch.cat([sample_dit(model, torch.arange(s, min(s + args.batch, args.calls)) % n_cls,
+                                     steps=args.steps, cfg_scale=args.cfg, generator=g)
+                          for s in range(0, args.calls, args.batch)])
 
-    return model, sample
+    return model, sample, args.steps, 2 * model.config.depth
+
+
+def output_search(model, sample, steps: int, branches: int, rho: float, args):
+    """Compute steps shared by all branches, placed to minimise L1(sparse output, dense output)."""
+    with torch.no_grad():
+        target = sample()
+    computes = max(1, round((1.0 - rho) * steps))
+
+    def loss(compute_steps):
+        plan = tts.plans.from_tensor(steps_grid(compute_steps, steps, branches))
+        with torch.no_grad(), tts.accelerate(model, ("timestep",), plan=plan, forecast=args.forecast):
+            return float((sample() - target).abs().mean())
+
+    best, history = search_compute_steps(loss, steps, computes, max_sweeps=args.sweeps,
+                                         log=lambda msg: print(msg, flush=True))
+    return steps_grid(best, steps, branches), {"compute_steps": best, "search_history": history,
+                                               "forecast": args.forecast}
 
 
 def main(argv=None) -> dict:
@@ -74,30 +99,42 @@ def main(argv=None) -> dict:
     ap.add_argument("--calls", type=int, default=64, help="calibration policy calls (spread over the episodes)")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--objective", choices=["similarity", "output"], default="similarity",
+                    help="similarity: BAC-style per-branch DP on activation change; output: one set of compute "
+                         "steps for all branches, local search on the final output's L1 to dense")
+    ap.add_argument("--forecast", type=int, default=0, help="--objective output: Taylor forecast order used in the search")
+    ap.add_argument("--sweeps", type=int, default=6, help="--objective output: at most this many local-search sweeps")
     ap.add_argument("--out", type=Path, required=True, help="output JSON; with several sparsities, one file each "
                     "named <out stem>_<sparsity>.json")
     args = parse_args(ap, argv)
     if (args.dit is None) == (args.checkpoint is None):
         raise SystemExit("give either --checkpoint (with --trajectories) or --dit")
+    if args.forecast and args.objective != "output":
+        raise SystemExit("--forecast applies to --objective output")
     if args.dit is not None:
-        model, sample = dit_calibration(args)
+        model, sample, steps, branches = dit_calibration(args)
     else:
         if args.trajectories is None:
             raise SystemExit("--checkpoint needs --trajectories (calibration observations)")
-        model, sample = policy_calibration(args)
-    errors = reuse_errors(model, sample)
+        model, sample, steps, branches = policy_calibration(args)
+    errors = reuse_errors(model, sample) if args.objective == "similarity" else None
     written = {}
     for rho in args.sparsity:
-        grid = search_schedule(errors, rho)
+        tts.plans.check_sparsity(rho)
+        if errors is not None:
+            grid, extra = search_schedule(errors, rho), {}
+        else:
+            grid, extra = output_search(model, sample, steps, branches, rho, args)
         out = args.out if len(args.sparsity) == 1 else args.out.with_name(f"{args.out.stem}_{rho:g}.json")
         doc = {
             "provenance": provenance(seeds={"calibration": args.seed}),
-            "method": "BAC-style per-branch DP on activation similarity (timestep reuse)",
+            "method": ("BAC-style per-branch DP on activation similarity (timestep reuse)" if errors is not None
+                       else "compute steps shared by all branches, local search on output L1 to dense"),
             "model": str(args.dit or args.checkpoint), "trajectories": str(args.trajectories),
             "calibration_episodes": args.episodes, "calibration_calls": args.calls,
             "sparsity": rho, "realised_sparsity": float((grid != 0).float().mean()),
             "directions": ["timestep"],
-            "grid": ["".join("CFTR"[c] for c in row.tolist()) for row in grid],
+            "grid": ["".join("CFTR"[c] for c in row.tolist()) for row in grid], **extra,
         }
         write_json(out, doc)
         written[rho] = str(out)

@@ -74,7 +74,7 @@ def latency_table(folder: Path) -> str:
 
 
 IMAGE_ROWS = ("dense", "fora_n5", "taylorseer_n5_o2", "toca_n6", "duca_n6", "static_bac", "tts",
-              "static_bac_taylor2", "tts_taylor2")
+              "static_bac_taylor2", "tts_taylor2", "steps_o2", "tts_steps_o2")
 
 
 def image_table(folder: Path) -> str:

@@ -8,7 +8,7 @@ import tts
 from test_robot_pipeline import obs_batch, small_policy
 from tts.plans import COMPUTE, TIMESTEP
 from tts.pruner import PrunerConfig, StaticRouter, build_pruner, load_pruner, save_pruner
-from tts.static_search import reuse_errors, search_schedule
+from tts.static_search import reuse_errors, search_compute_steps, search_schedule, steps_grid
 
 
 def _brute_force(e: torch.Tensor, m: int) -> float:
@@ -43,6 +43,30 @@ def test_search_schedule_is_optimal_and_meets_the_budget(sparsity):
             else:
                 cost += float(errors[b, j, last])
         assert cost == pytest.approx(_brute_force(errors[b], m))
+
+
+def test_search_compute_steps_descends_to_the_loss_minimum_and_keeps_step_0():
+    target = [0, 3, 4, 11, 17]
+    calls = []
+
+    def loss(steps):  # separable, so the first-improvement local search reaches the optimum
+        calls.append(list(steps))
+        assert steps == sorted(steps) and steps[0] == 0 and len(set(steps)) == 5
+        return sum(abs(a - b) for a, b in zip(steps, target))
+
+    best, history = search_compute_steps(loss, 20, 5, max_sweeps=20)
+    assert best == target and history[0]["steps"] == [0, 4, 8, 12, 16]
+    assert [h["loss"] for h in history] == sorted((h["loss"] for h in history), reverse=True)
+    assert history[-1]["loss"] == 0
+    calls.clear()
+    best, history = search_compute_steps(loss, 20, 5, init=target)  # already optimal: nothing moves
+    assert best == target and len(history) == 1 and len(calls) > 1
+    with pytest.raises(ValueError, match="including 0"):
+        search_compute_steps(loss, 20, 3, init=[1, 5, 9])
+    with pytest.raises(ValueError, match="computes"):
+        search_compute_steps(loss, 20, 0)
+    grid = steps_grid(target, 20, 4)
+    assert grid.shape == (20, 4) and (grid[target] == COMPUTE).all() and int((grid == COMPUTE).sum()) == 20
 
 
 def test_reuse_errors_measure_what_timestep_reuse_would_change():

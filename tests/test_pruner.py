@@ -390,3 +390,26 @@ def test_budget_ste_gates_fix_the_sparsity_and_pass_gradients():
     assert torch.equal(hard.detach().argmax(-1).to(torch.int8), codes)
     (hard[..., 0] * torch.arange(6.0)[None, :, None]).sum().backward()
     assert logits.grad is not None and logits.grad[:, 1:].abs().sum() > 0
+
+
+def test_tied_pruner_decides_whole_steps_per_sample():
+    from tts.gates import budget_ste_gates
+
+    K, nb = 8, 6
+    torch.manual_seed(0)
+    pr = Pruner(PrunerConfig(memory_dim=32, num_branches=nb, hidden=16, heads=2, ffn=32, dropout=0.0,
+                             tie_branches=True))
+    with torch.no_grad():
+        pr.head.weight.normal_()  # decisions that depend on the memory
+    memory = torch.randn(3, K, 2, 32)
+    logits = pr.eval()(memory)
+    assert torch.equal(logits, logits[:, :, :1].expand_as(logits))  # one decision per (sample, step)
+    codes = budget_codes(logits.detach(), pr.config.codes, 0.75)  # 2 of 8 steps computed
+    per_step = (codes == COMPUTE).all(2)
+    assert torch.equal(per_step, (codes == COMPUTE).any(2)) and per_step.sum(1).eq(2).all() and per_step[:, 0].all()
+    assert not torch.equal(per_step[0], per_step[1]) or not torch.equal(per_step[1], per_step[2])  # per sample
+    hard, _ = budget_ste_gates(pr.train()(memory), 0.75)
+    (hard[..., 0] * torch.arange(float(K))[None, :, None]).sum().backward()
+    assert pr.head.weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="tie_branches"):
+        PrunerConfig(memory_dim=8, num_branches=3, kind="static", steps=4, tie_branches=True)

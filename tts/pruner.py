@@ -53,6 +53,7 @@ class PrunerConfig:
     steps: int = 0  # K, for kind="static" and for a prior
     prior: bool = False  # add fixed prior logits [steps, nb, O] (a searched schedule) to the pruner's own
     head_bias: Optional[list[float]] = None  # initial head bias per option (default: compute 2, reuse 0)
+    tie_branches: bool = False  # one decision per (sample, step) for all branches: whole steps computed or reused
 
     def __post_init__(self) -> None:
         self.directions = check_directions(self.directions)
@@ -64,6 +65,8 @@ class PrunerConfig:
             raise ValueError(f"head_bias needs one value per option {self.codes}, got {self.head_bias}")
         if self.kind not in ("transformer", "static"):
             raise ValueError(f"kind must be 'transformer' or 'static', got {self.kind!r}")
+        if self.kind == "static" and self.tie_branches:
+            raise ValueError("tie_branches applies to the transformer pruner, not the static router")
         if (self.kind == "static" or self.prior) and self.steps < 1:
             raise ValueError("a static router or a prior needs steps= (the number of denoising steps K)")
 
@@ -151,6 +154,8 @@ class Pruner(nn.Module):
         q = self._query_state()
         x = self.layer(q.unsqueeze(0).expand(B * K, -1, -1), mem)
         logits = self.head(x).reshape(B, K, self.config.num_branches, -1)
+        if self.config.tie_branches:  # step-level decisions: the branches' logits averaged
+            logits = logits.mean(2, keepdim=True).expand_as(logits)
         if self.prior is not None:
             if K != self.prior.shape[0]:
                 raise ValueError(f"the pruner's prior schedule has {self.prior.shape[0]} steps, the sampler runs {K}")

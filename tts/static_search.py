@@ -14,16 +14,21 @@ tts branches, written from that description:
    the target; BAC's "bubbling union" refinement is not reproduced.
 
 The result is a ``[K, nb]`` decision grid (compute / timestep) for :func:`tts.plans.from_tensor`.
+
+:func:`search_compute_steps` is the output-error alternative for models where per-branch schedules
+sample badly: one set of compute steps for every branch (whole steps reused, FORA-like, but placed
+where they matter), found by local search that moves one compute step at a time while a
+caller-supplied loss (e.g. L1 of the final sample against the dense one, same noise) decreases.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Optional, Sequence
 
 import torch
 
 from .plans import COMPUTE, TIMESTEP, Plan, check_sparsity
 
-__all__ = ["record_branch_outputs", "reuse_errors", "search_schedule"]
+__all__ = ["record_branch_outputs", "reuse_errors", "search_schedule", "search_compute_steps", "steps_grid"]
 
 
 class _ComputeAndKeep(Plan):
@@ -116,3 +121,50 @@ def search_schedule(errors: torch.Tensor, sparsity: float) -> torch.Tensor:
             out[i, b] = COMPUTE
             i = int(arg[c, i])
     return out
+
+
+def steps_grid(compute_steps: Sequence[int], steps: int, branches: int) -> torch.Tensor:
+    """Decision grid [K, nb]: every branch computed at ``compute_steps``, timestep reuse elsewhere."""
+    out = torch.full((steps, branches), TIMESTEP, dtype=torch.int8)
+    out[list(compute_steps)] = COMPUTE
+    return out
+
+
+def search_compute_steps(loss: Callable[[list[int]], float], steps: int, computes: int, *,
+                         init: Optional[Sequence[int]] = None, shifts: Sequence[int] = (1, 2, 3),
+                         max_sweeps: int = 6, log: Optional[Callable[[str], None]] = None
+                         ) -> tuple[list[int], list[dict]]:
+    """Local search for ``computes`` compute steps out of ``steps`` (step 0 always included)
+    minimising ``loss(sorted step list)``.
+
+    Starts from ``init`` (default: evenly spaced, FORA's interval when it divides ``steps``). A sweep
+    tries, for every compute step but 0, moving it by each of +-``shifts`` to a free step, and keeps a
+    move as soon as it lowers the loss (first improvement). Stops after a sweep without improvement or
+    ``max_sweeps``. Returns the best step list and the history of accepted moves (each with its loss).
+    """
+    if not 1 <= computes <= steps:
+        raise ValueError(f"computes must lie in [1, {steps}], got {computes}")
+    cur = sorted(set(init)) if init is not None else sorted({round(i * steps / computes) for i in range(computes)})
+    if len(cur) != computes or cur[0] != 0 or cur[-1] >= steps:
+        raise ValueError(f"init must hold {computes} distinct steps in [0, {steps}) including 0, got {cur}")
+    best = float(loss(cur))
+    history = [{"sweep": 0, "steps": list(cur), "loss": best}]
+    say = log or (lambda msg: None)
+    say(f"start {cur}: loss {best:.5f}")
+    for sweep in range(1, max_sweeps + 1):
+        improved = False
+        for pos in range(1, computes):
+            for d in [s * sign for s in shifts for sign in (-1, 1)]:
+                new = cur[pos] + d
+                if new <= 0 or new >= steps or new in cur:
+                    continue
+                cand = sorted(cur[:pos] + [new] + cur[pos + 1:])
+                val = float(loss(cand))
+                if val < best:
+                    say(f"sweep {sweep}: {cur[pos]} -> {new}: loss {val:.5f}")
+                    cur, best, improved = cand, val, True
+                    history.append({"sweep": sweep, "steps": list(cur), "loss": best})
+                    break
+        if not improved:
+            break
+    return cur, history
