@@ -81,7 +81,8 @@ def output_search(model, sample, steps: int, branches: int, rho: float, args):
         with torch.no_grad(), tts.accelerate(model, ("timestep",), plan=plan, forecast=args.forecast):
             return float((sample() - target).abs().mean())
 
-    best, history = search_compute_steps(loss, steps, computes, max_sweeps=args.sweeps,
+    shifts = [int(x) for x in args.shifts.split(",")]
+    best, history = search_compute_steps(loss, steps, computes, max_sweeps=args.sweeps, shifts=shifts,
                                          log=lambda msg: print(msg, flush=True))
     return steps_grid(best, steps, branches), {"compute_steps": best, "search_history": history,
                                                "forecast": args.forecast}
@@ -104,6 +105,7 @@ def main(argv=None) -> dict:
                          "steps for all branches, local search on the final output's L1 to dense")
     ap.add_argument("--forecast", type=int, default=0, help="--objective output: Taylor forecast order used in the search")
     ap.add_argument("--sweeps", type=int, default=6, help="--objective output: at most this many local-search sweeps")
+    ap.add_argument("--shifts", default="1,2,3", help="--objective output: how far one move shifts a compute step")
     ap.add_argument("--out", type=Path, required=True, help="output JSON; with several sparsities, one file each "
                     "named <out stem>_<sparsity>.json")
     args = parse_args(ap, argv)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The image table (issue 5) on the bundled digits DiT, from scratch or resuming: every step whose output
-# exists is skipped (FORCE=1 redoes them). ~1.5 h on 2 CPU cores. Writes results/image/*.{npz,json,png},
+# exists is skipped (FORCE=1 redoes them). ~2 h on 2 CPU cores. Writes results/image/*.{npz,json,png},
 # results/image/TABLE.md and the README's image table.
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
@@ -35,7 +35,17 @@ run tts --method tts --pruner checkpoints/pruners/digits_tts_budget_$RHO --spars
 # irregular compute gaps diverged (logs in the README), so this row is the prior's schedule.
 train_pruner digits_tts_taylor2_$RHO --forecast 2 --lr 3e-4
 run tts_taylor2 --method tts --pruner checkpoints/pruners/digits_tts_taylor2_$RHO --sparsity $RHO --forecast 2
+# whole steps placed by output error (one compute-step set for every branch, Taylor O=2), and the
+# step-level pruner (--tie-branches) started from it: per-class/per-half step choices, exact budget
+[ -f results/schedules/digits_steps_$RHO.json ] || python eval/search_static.py --dit checkpoints/digits_dit \
+    --sparsity $RHO --steps 50 --cfg 1.5 --objective output --forecast 2 --calls 64 --batch 64 \
+    --out results/schedules/digits_steps_$RHO.json
+run steps_o2 --method static --plan results/schedules/digits_steps_$RHO.json --forecast 2
+train_pruner digits_tts_steps_$RHO --prior results/schedules/digits_steps_$RHO.json --tie-branches --forecast 2 \
+    --train-budget --prior-margin 0.5 --lr 3e-3
+run tts_steps_o2 --method tts --pruner checkpoints/pruners/digits_tts_steps_$RHO --sparsity $RHO --forecast 2
 [ -f results/image/latency.json ] && [ -z "${FORCE:-}" ] || python eval/image_latency.py --model checkpoints/digits_dit \
     --pruner checkpoints/pruners/digits_tts_budget_$RHO --pruner-taylor checkpoints/pruners/digits_tts_taylor2_$RHO \
+    --pruner-steps checkpoints/pruners/digits_tts_steps_$RHO --plan-steps results/schedules/digits_steps_$RHO.json \
     --plan results/schedules/digits_bac_$RHO.json --sparsity $RHO --out results/image/latency.json
 python eval/tables.py
