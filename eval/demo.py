@@ -2,7 +2,7 @@
 93%-sparse schedule (searched offline by eval/search_static.py), a few test episodes each; prints
 success and the policy-call speed-up measured in this process.
 
-    python eval/demo.py [--episodes 5] [--plan file:results/schedules/lift_bac_0.93.json] [--engine]
+    python eval/demo.py [--episodes 5] [--plan file:results/schedules/lift_steps_0.93.json] [--engine]
 
 ``--engine`` instead runs the engine benchmark on a DP-sized transformer and a DiT-S/2 (random
 weights: speed and MACs only).
@@ -53,7 +53,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoint", type=Path, default=DEFAULT_CKPT)
     ap.add_argument("--episodes", type=int, default=5)
-    ap.add_argument("--plan", default="file:results/schedules/lift_bac_0.93.json",
+    ap.add_argument("--plan", default="file:results/schedules/lift_steps_0.93.json",
                     help="a static plan: file:<searched schedule JSON> (relative to the repo), uniform:<s>:<dir>, ...")
     ap.add_argument("--seed", type=int, default=100000)
     ap.add_argument("--engine", action="store_true", help="engine benchmark on random-weight models instead")
