@@ -26,6 +26,7 @@ from common import provenance
 import tts
 from tts.io import atomic_path
 from tts.pruner import PrunerPlan, save_pruner
+from tts.static_search import steps_grid
 
 __all__ = ["add_training_args", "fit", "RecordingPlan", "mean_of", "read_grid"]
 
@@ -67,9 +68,7 @@ def read_grid(path: Path, steps: Optional[int] = None, branches: Optional[int] =
     if spec.startswith("every_n:"):
         if steps is None or branches is None:
             raise ValueError("an every_n:N prior needs the number of steps and branches")
-        n = int(spec.split(":", 1)[1])
-        codes = [[tts.plans.COMPUTE if k % n == 0 else tts.plans.TIMESTEP] * branches for k in range(steps)]
-        return torch.tensor(codes, dtype=torch.int8)
+        return steps_grid(range(0, steps, int(spec.split(":", 1)[1])), steps, branches)
     return tts.plans.from_tensor(json.loads(Path(path).read_text())["grid"]).decisions[0]
 
 
