@@ -227,14 +227,16 @@ def _adapt(model: Any) -> Optional[Target]:
     names = ("input_emb", "pos_emb", "ln_f", "head", "encoder", "decoder")
     if not (isinstance(model, nn.Module) and all(hasattr(model, n) for n in names)):
         return None
+    chain = False
     if isinstance(model.decoder, nn.TransformerDecoder):
         sites = [(f"decoder.layers.{i}", m, decoder_layer_spec(m)) for i, m in enumerate(model.decoder.layers)]
+        chain = True  # nn.TransformerDecoder: `for mod in layers: output = mod(output, memory, ...)`
     elif isinstance(model.encoder, nn.TransformerEncoder):
         sites = [(f"encoder.layers.{i}", m, encoder_layer_spec(m)) for i, m in enumerate(model.encoder.layers)]
     else:
         return None
     return Target(denoiser=model, sites=sites, condition=(model, "condition_memory"),
-                  description="Diffusion Policy transformer")
+                  description="Diffusion Policy transformer", chain=chain)
 
 
 register_model_adapter("Diffusion Policy transformer", _adapt)

@@ -540,6 +540,7 @@ def dit_block_spec(block: nn.Module) -> BlockSpec:
         branches=(BranchSpec("attn", "self_attn", ("attn", "norm1"), probe=_attention_probe),
                   BranchSpec("mlp", "mlp", ("mlp", "norm2"))),
         forward=_dit_block_forward,
+        residual=True,
     )
 
 
@@ -578,7 +579,7 @@ def _adapt(model: Any) -> Optional[Target]:
         return None
     condition = (model, "condition_memory") if callable(getattr(model, "condition_memory", None)) else None
     return Target(denoiser=model, sites=discover_sites(model), supports_rollout=False, condition=condition,
-                  description=f"DiT ({type(model).__name__})")
+                  description=f"DiT ({type(model).__name__})", chain=True)  # `for block in blocks: x = block(x, c)`
 
 
 register_block_family("DiT block (timm Attention/Mlp + adaLN)", _match)

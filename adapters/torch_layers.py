@@ -111,6 +111,7 @@ def decoder_layer_spec(layer: nn.TransformerDecoderLayer) -> BlockSpec:
         ),
         forward=_decoder_forward,
         batch_dim=0 if layer.self_attn.batch_first else 1,
+        residual=pre,
     )
 
 
@@ -124,6 +125,7 @@ def encoder_layer_spec(layer: nn.TransformerEncoderLayer) -> BlockSpec:
         ),
         forward=_encoder_forward,
         batch_dim=0 if layer.self_attn.batch_first else 1,
+        residual=pre,
     )
 
 

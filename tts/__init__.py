@@ -76,6 +76,7 @@ def accelerate(
     blocks: BlocksArg = None,
     fast_dense: bool = True,
     forecast: int = 0,
+    fuse_steps: bool = True,
 ) -> Accelerator:
     """Install test-time sparsity on ``model`` and return the :class:`Accelerator`.
 
@@ -94,6 +95,9 @@ def accelerate(
         as is; 1: extrapolate linearly from the last two computes; ...).
     fast_dense: when a block computes every branch for every sample and nothing needs caching,
         call the block's own forward (keeps PyTorch fast paths, bit-identical outputs).
+    fuse_steps: when every branch of a step reuses (timestep or rollout) for every sample, and the
+        adapter declares its blocks a residual chain (DiT, pre-norm DP-T), run the step's blocks as one
+        add of the summed cached outputs (same result up to float summation order).
     """
     dirs = check_directions(directions)
     if pruner is not None:
@@ -123,4 +127,4 @@ def accelerate(
             if not dirs:
                 raise ValueError("sparsity > 0 needs at least one direction to reuse from")
             plan = plans.uniform(sparsity, "timestep" if "timestep" in dirs else dirs[0])
-    return Accelerator(target, dirs, plan, fast_dense=fast_dense, forecast=forecast)
+    return Accelerator(target, dirs, plan, fast_dense=fast_dense, forecast=forecast, fuse_steps=fuse_steps)

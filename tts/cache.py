@@ -16,6 +16,10 @@ on compute. Writes store references (no copy) when every sample computed, and ou
 finite-difference derivatives along the step index (D_{i+1} = (D_i - D_i,previous) / steps between
 the two computes), and a reuse at step k returns sum_i D_i (k - k_last)^i / i!. Steps are tracked
 per sample, so samples that computed at different steps forecast from their own history.
+
+:meth:`ReuseCache.step_total` serves whole-step fusion (see :mod:`tts.spec`): the sum over branches
+of what a step reads. Timestep sums are kept until the next write (``version``); with a forecast
+they are kept per Taylor order, so a fused step costs O + 1 tensor ops whatever the depth.
 """
 from __future__ import annotations
 
@@ -122,16 +126,20 @@ class ReuseCache:
         self.forward: list[Optional[torch.Tensor]] = [None] * num_kinds
         self.timestep: list = [None] * self.num_branches  # tensors, or TaylorSlots when forecasting
         self.rollout: list[list[Optional[torch.Tensor]]] = []
+        self.version = 0  # bumped by every write and clear: keys the memo of step_total
+        self._sums: Optional[tuple[int, list[torch.Tensor], int]] = None  # (version, per-order sums, step)
 
     # -- lifecycle -------------------------------------------------------------------------------
     def begin_call(self) -> None:
         """Forward and timestep caches live for one sampling call."""
         self.forward = [None] * self.num_kinds
         self.timestep = [None] * self.num_branches
+        self.version += 1
 
     def new_episode(self) -> None:
         """Rollout caches live for one episode."""
         self.rollout = []
+        self.version += 1
 
     def rollout_ready(self, k: int) -> bool:
         """True when every branch has a rollout entry for step ``k``."""
@@ -148,6 +156,42 @@ class ReuseCache:
             return self.rollout[k][b] if k < len(self.rollout) else None
         raise ValueError(f"not a reuse code: {code}")
 
+    def step_total(self, codes: Sequence[int], k: int) -> torch.Tensor:
+        """Sum over branches b of ``read(codes[b], b, k)``: what a fused step adds to the stream."""
+        if all(c == TIMESTEP for c in codes):
+            sums = self._timestep_sums()
+            if sums is not None:
+                derivs, last = sums
+                out = derivs[0]
+                for i, d in enumerate(derivs[1:], 1):
+                    out = torch.add(out, d, alpha=float(k - last) ** i / math.factorial(i))
+                return out
+        total = None
+        for b, code in enumerate(codes):
+            d = self.read(code, b, k)
+            if d is None:
+                raise RuntimeError(f"internal: empty cache (code {code}) for branch {b} in a fused step")
+            total = d if total is None else total + d
+        return total
+
+    def _timestep_sums(self) -> Optional[tuple[list[torch.Tensor], int]]:
+        """Per-order sums over branches of the timestep slots, or None when the slots do not share
+        one history (samples or branches computed at different steps): then sum branch by branch."""
+        if self._sums is not None and self._sums[0] == self.version:
+            return self._sums[1], self._sums[2]
+        slots = self.timestep
+        if not self.forecast:
+            derivs, last = [torch.stack(slots).sum(0)], 0
+        else:
+            first = slots[0]
+            if any(torch.is_tensor(s.step) or torch.is_tensor(s.valid) or s.step != first.step
+                   or len(s.derivs) != len(first.derivs) for s in slots):
+                return None
+            derivs = [torch.stack([s.derivs[i] for s in slots]).sum(0) for i in range(len(first.derivs))]
+            last = first.step
+        self._sums = (self.version, derivs, last)
+        return derivs, last
+
     # -- writes (compute only) -------------------------------------------------------------------
     def _rollout_row(self, k: int) -> list[Optional[torch.Tensor]]:
         while len(self.rollout) <= k:
@@ -156,6 +200,7 @@ class ReuseCache:
 
     def write(self, b: int, k: int, d: torch.Tensor) -> None:
         """Branch b computed for every sample at step k."""
+        self.version += 1
         if self.use_forward:
             self.forward[self.kind_of_branch[b]] = d
         if self.use_timestep:
@@ -170,6 +215,7 @@ class ReuseCache:
 
     def write_rows(self, b: int, k: int, rows: torch.Tensor, d_rows: torch.Tensor, dim: int) -> None:
         """Branch b computed only for ``rows`` (indices along the batch dim ``dim``) at step k."""
+        self.version += 1
 
         def merged(old: Optional[torch.Tensor]) -> torch.Tensor:
             if old is None:

@@ -102,7 +102,7 @@ class Accelerator:
     """Installed by :func:`tts.accelerate`. See the README for the user-facing API."""
 
     def __init__(self, target: Target, directions: Sequence[str], plan: Plan, fast_dense: bool = True,
-                 forecast: int = 0):
+                 forecast: int = 0, fuse_steps: bool = True):
         self.target = target
         self.directions = tuple(directions)
         self.plan = plan
@@ -130,6 +130,8 @@ class Accelerator:
                 self._batch_dim.append(spec.batch_dim)
             self.sites.append(site)
         self.num_branches = len(kind_of_branch)
+        # whole-step fusion (tts.spec): one add per step where every branch reuses T or R
+        self.fuse_steps = bool(fuse_steps and target.chain and all(s.spec.residual for s in self.sites))
         if forecast and "timestep" not in self.directions:
             raise ValueError("forecast= applies to the timestep direction, which is not enabled")
         self.cache = ReuseCache(kind_of_branch, len(kinds), self.directions, forecast=forecast,
@@ -164,6 +166,8 @@ class Accelerator:
         self._row: list[int] = []
         self._groups: dict[int, tuple] = {}
         self._passthrough = True
+        self._fused = False  # this step is fused
+        self._fuse_pending = False  # ... and its sum has not been added yet
         self._memo: dict[int, tuple] = {}
         self._all_compute = torch.zeros(1, self.num_branches, dtype=torch.int8)
         self._profile_key: Optional[tuple] = None
@@ -226,6 +230,8 @@ class Accelerator:
                 def forward(*args, **kwargs):
                     if self._passthrough or not self._in_step:
                         return orig(*args, **kwargs)
+                    if self._fused:
+                        return self._fused_block(site, args)
                     return site.spec.forward(site.module, site.runner, *args, **kwargs)
 
                 return forward
@@ -409,6 +415,7 @@ class Accelerator:
 
     def _prepare_step(self, k: int, batch: int) -> None:
         self._soft = None
+        self._fused = self._fuse_pending = False
         if getattr(self.plan, "soft", False) and k > 0 and not self._dense_call:
             self._prepare_soft(k)
             return
@@ -430,8 +437,12 @@ class Accelerator:
             if len(self._memo) > 4096:
                 self._memo.clear()
             self._memo[id(rows)] = memo
-        _, self._row, self._groups, all_compute = memo
+        _, self._row, self._groups, all_compute, all_reuse = memo
         self._passthrough = self.fast_dense and all_compute and not self._store
+        self._fused = self._fuse_pending = (self.fuse_steps and all_reuse and k > 0 and not self._dense_call
+                                            and not self._want_probe)
+        if self._fused:
+            self.calls[-1].fused_steps += 1
 
     def _prepare_soft(self, k: int) -> None:
         """Training path: every branch computes; outputs are mixed with straight-through gates."""
@@ -446,8 +457,9 @@ class Accelerator:
         self.calls[-1].steps.append(table[g.detach().argmax(-1).cpu()])
         self._passthrough = False
 
-    def _fast_form(self, rows: torch.Tensor, batch: int) -> tuple[list[int], dict, bool]:
-        """Per branch: one code if all samples agree, else -1 and (compute rows, [(code, rows)])."""
+    def _fast_form(self, rows: torch.Tensor, batch: int) -> tuple[list[int], dict, bool, bool]:
+        """Per branch: one code if all samples agree, else -1 and (compute rows, [(code, rows)]);
+        then whether every branch computes, and whether every branch reuses T or R (fusable)."""
         if rows.shape[0] not in (1, batch):
             raise ValueError(f"plan gave decisions for {rows.shape[0]} samples, batch is {batch}")
         row: list[int] = []
@@ -466,7 +478,8 @@ class Accelerator:
                 None if cidx is None else torch.tensor(cidx),
                 [(c, torch.tensor(ix)) for c, ix in where.items()],
             )
-        return row, groups, not any(row) and not groups
+        all_reuse = not groups and all(c in (TIMESTEP, ROLLOUT) for c in row)
+        return row, groups, not any(row) and not groups, all_reuse
 
     def _maybe_profile(self, orig: Callable, args: tuple, kwargs: dict, batch: int) -> None:
         """Count MACs per branch once per input-shape signature, in a separate dense dry run.
@@ -487,6 +500,17 @@ class Accelerator:
         self.macs_per_row = {owner: v / batch for owner, v in profiler.totals.items()}
 
     # ------------------------------------------------------------------ branch execution
+    def _fused_block(self, site: _Site, args: tuple) -> torch.Tensor:
+        """A block of a fused step: the first adds every branch's reused output, the rest pass x on."""
+        if not args or not isinstance(args[0], torch.Tensor):
+            raise RuntimeError(f"block {site.name} was called without its residual stream as first positional "
+                               "argument, which Target.chain promises; build the Target with chain=False")
+        x = args[0]
+        if not self._fuse_pending:
+            return x
+        self._fuse_pending = False
+        return x + self.cache.step_total(self._row, self._k)
+
     def _run(self, base: int, i: int, fn: Callable, *batched: Any) -> torch.Tensor:
         b = base + i
         if self._soft is not None:

@@ -18,6 +18,13 @@ samples of the batch compute); everything shared across the batch (masks, module
 closure. A :class:`Lazy` argument is evaluated at most once per block call, and only if some branch
 of the block computes (used for adaLN modulation).
 
+Whole-step fusion: when a block is a pure sum of its branches (``BlockSpec.residual``: its forward
+is exactly ``x + run(0, ...) + run(1, ...) + ...`` with ``x`` its first argument) and the blocks
+form one chain on the residual stream (``Target.chain``), a step at which every branch of every
+block reuses the timestep or rollout cache is the input plus a sum of cached tensors; the engine
+then adds that sum once at the first block and passes the stream through the others (no per-branch
+work, and the per-order sums of a forecast are kept between computes).
+
 Backbone knowledge lives in ``tts.adapters``; the core only keeps the registries below.
 """
 from __future__ import annotations
@@ -66,6 +73,7 @@ class BlockSpec:
     branches: tuple[BranchSpec, ...]
     forward: Callable[..., Any]
     batch_dim: int = 0
+    residual: bool = False  # forward(block, run, x, ...) == x + sum of the branch deltas, nothing else
 
     def __post_init__(self) -> None:
         if not self.branches:
@@ -120,6 +128,9 @@ class Target:
     condition: (object, method name) of the function that encodes the condition for all K steps of
         a call at once ([B, K, Tc, D]); its output is what a learned pruner reads (DP-T:
         ``model.condition_memory``).
+    chain: the sites run one after another on one residual stream with nothing in between
+        (``for blk in blocks: x = blk(x, ...)``, x the first positional argument). With every
+        site's ``BlockSpec.residual``, whole-step reuse is fused (see the module docstring).
     """
 
     denoiser: nn.Module
@@ -131,6 +142,7 @@ class Target:
     timestep_of: Callable[[tuple, dict], Any] = _default_timestep
     batch_of: Callable[[tuple, dict], int] = _first_tensor_batch
     description: str = ""
+    chain: bool = False
 
 
 BlockMatcher = Callable[[nn.Module], Optional[BlockSpec]]

@@ -25,6 +25,7 @@ class CallRecord:
     timing: dict[str, float] = field(default_factory=dict)  # seconds: encoder, pruner, wait, decoder, total
     pruner_macs: float = 0.0  # MACs of the pruner in this call (whole batch)
     token_work: dict[int, float] = field(default_factory=dict)  # branch -> sum of token fractions refreshed
+    fused_steps: int = 0  # steps run as one add of cached outputs (every branch reused, see tts.spec)
 
     def decisions(self) -> torch.Tensor:
         """[steps, batch, num_branches] int8."""
