@@ -4,7 +4,7 @@
         --trajectories data/trajectories/lift.pt          # pruning masks per rollout iteration (paper Figs 12-16)
     python eval/figures.py similarity --task lift --checkpoint checkpoints/lift_dpt \
         --trajectories data/trajectories/lift.pt          # forward / timestep / rollout feature similarity (Fig 9)
-    python eval/figures.py data-efficiency --task lift    # success vs training trajectories (Figs 10-11)
+    python eval/figures.py data-efficiency --task lift    # success vs trajectories (Figs 10-11; scripts/data_efficiency.sh)
 
 Masks and similarities use held-out recorded episodes (index >= ``--first-episode``, past the
 pruner's training and validation sets) with the recorded noise seeds.
@@ -135,32 +135,52 @@ def similarity(args) -> Path:
     return out
 
 
+def _efficiency_rows(task: str) -> dict[str, list[tuple[int, float]]]:
+    """(training or calibration trajectories, success) per series, from finished result JSONs:
+    TTS pruners by their ``n_train_episodes``; searched whole-step schedules (``--plan file:``) by
+    their ``calibration_episodes``."""
+    series: dict[str, list[tuple[int, float]]] = {}
+    for path in sorted((REPO / "results" / "robot").glob(f"{task}_*.json")):
+        r = json.loads(path.read_text())
+        if "success_rate" not in r or r.get("episodes_done") != r.get("episodes_requested"):
+            continue
+        meta = r.get("pruner_metadata") or {}
+        if "n_train_episodes" in meta:
+            series.setdefault("TTS pruner (training trajectories)", []).append((meta["n_train_episodes"], r["success_rate"]))
+            continue
+        cmd = r.get("provenance", {}).get("command", "").split()
+        plan = next((a.split(":", 1)[1] for a in cmd if a.startswith("file:")), None)
+        if plan is None or not (REPO / plan).exists():
+            continue
+        sched = json.loads((REPO / plan).read_text())
+        if sched.get("method", "").startswith("compute steps shared"):
+            label = f"searched steps, rho={sched['sparsity']:g} (calibration trajectories)"
+            series.setdefault(label, []).append((sched["calibration_episodes"], r["success_rate"]))
+    return series
+
+
 def data_efficiency(args) -> Path:
     plt = _plt()
-    rows = []
-    for path in sorted((REPO / "results" / "robot").glob(f"{args.task}_tts-*.json")):
-        r = json.loads(path.read_text())
-        meta = r.get("pruner_metadata") or {}
-        if "n_train_episodes" in meta and r.get("episodes_done") == r.get("episodes_requested"):
-            rows.append((meta["n_train_episodes"], r["success_rate"], r["provenance"]["seeds"][0], path.name))
-    if not rows:
-        raise SystemExit(f"no {args.task} tts results with pruner metadata in results/robot/")
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    ns = sorted({n for n, *_ in rows})
-    means = [np.mean([s for n2, s, *_ in rows if n2 == n]) for n in ns]
-    ax.plot(ns, means, "o-", label="TTS pruner (mean over runs)")
-    for n, s, *_ in rows:
-        ax.scatter([n], [s], color="gray", s=10)
-    dense = REPO / "results" / "robot" / f"{args.task}_dense_100000.json"
-    if dense.exists():
-        ax.axhline(json.loads(dense.read_text())["success_rate"], color="k", ls="--", label="dense")
+    series = _efficiency_rows(args.task)
+    if not series:
+        raise SystemExit(f"no {args.task} results with training / calibration trajectory counts in results/robot/")
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    for (label, rows), color in zip(sorted(series.items()), COLORS[1:]):
+        ns = sorted({n for n, _ in rows})
+        means = [np.mean([s for n2, s in rows if n2 == n]) for n in ns]
+        ax.plot(ns, means, "o-", color=color, label=f"{label}, mean over seeds")
+        ax.scatter([n for n, _ in rows], [s for _, s in rows], color=color, s=10, alpha=0.5)
+    dense = [json.loads(p.read_text())["success_rate"]
+             for p in sorted((REPO / "results" / "robot").glob(f"{args.task}_dense_*.json"))]
+    if dense:
+        ax.axhline(float(np.mean(dense)), color="k", ls="--", label=f"dense (mean of {len(dense)} seeds)")
     ax.set_xscale("log", base=2)
-    ax.set_xlabel("training trajectories")
-    ax.set_ylabel("success rate (50 test episodes)")
+    ax.set_xlabel("trajectories")
+    ax.set_ylabel("success rate (50 test episodes per seed)")
     ax.set_ylim(0, 1.05)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
-    ax.set_title(f"{args.task}: success vs number of pruner training trajectories", fontsize=9)
+    ax.set_title(f"{args.task}: success vs number of trajectories", fontsize=9)
     fig.tight_layout()
     out = DOCS / f"{args.task}_data_efficiency.png"
     fig.savefig(out, dpi=110)

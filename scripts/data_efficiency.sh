@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# Success vs calibration data (issue 4, paper Figs 10-11 shape) for the searched whole-step schedule:
+# the compute steps are searched (eval/search_static.py --objective output) on the first N recorded
+# training trajectories, N = 1 2 4 8 16 (32 is results/schedules/<task>_steps_0.93.json), then
+# evaluated on 3 test seeds x 50 episodes. Resumable: every schedule / result that exists is skipped
+# (FORCE=1 redoes them). Needs data/trajectories/<task>.pt (eval/collect_trajectories.py).
+# ~25 min for Lift on 2 CPU cores. Then: python eval/figures.py data-efficiency --task <task>
+set -euo pipefail
+source "$(dirname "$0")/env.sh"
+TASK=${TASK:-lift}
+RHO=0.93
+for n in ${NS:-1 2 4 8 16}; do
+  sched=results/schedules/${TASK}_steps_${RHO}_n${n}.json
+  if [ ! -f "$sched" ] || [ -n "${FORCE:-}" ]; then
+    python eval/search_static.py --checkpoint checkpoints/${TASK}_dpt --trajectories data/trajectories/${TASK}.pt \
+        --sparsity $RHO --objective output --episodes "$n" --calls 64 --batch 64 --shifts 1,2,4,8 --sweeps 40 \
+        --threads 2 --out "$sched"
+  fi
+  for seed in 100000 100050 100100; do
+    out=results/robot/${TASK}_static-${TASK}_steps_${RHO}_n${n}_${seed}.json
+    if [ -f "$out" ] && [ -z "${FORCE:-}" ]; then echo "[skip] $out"; continue; fi
+    python eval/robot.py --task "$TASK" --checkpoint checkpoints/${TASK}_dpt --method static \
+        --plan "file:$sched" --episodes 50 --seed "$seed"
+  done
+done
