@@ -408,7 +408,13 @@ def test_tied_pruner_decides_whole_steps_per_sample():
     per_step = (codes == COMPUTE).all(2)
     assert torch.equal(per_step, (codes == COMPUTE).any(2)) and per_step.sum(1).eq(2).all() and per_step[:, 0].all()
     assert not torch.equal(per_step[0], per_step[1]) or not torch.equal(per_step[1], per_step[2])  # per sample
-    hard, _ = budget_ste_gates(pr.train()(memory), 0.75)
+    # a budget that is not a whole number of steps: whole_steps rounds it in steps, never splits one
+    split = budget_codes(logits.detach(), pr.config.codes, 0.7)  # 14 of 48 branches: 2 steps + 2
+    assert not torch.equal((split == COMPUTE).all(2), (split == COMPUTE).any(2))
+    whole = budget_codes(logits.detach(), pr.config.codes, 0.7, whole_steps=True)  # round(0.3 * 8) = 2 steps
+    assert torch.equal((whole == COMPUTE).all(2), per_step)
+    hard, _ = budget_ste_gates(pr.train()(memory), 0.7, whole_steps=True)
+    assert torch.equal(hard[..., 0].amin(2), hard[..., 0].amax(2)) and hard[..., 0].amax(2).sum(1).eq(2).all()
     (hard[..., 0] * torch.arange(float(K))[None, :, None]).sum().backward()
     assert pr.head.weight.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="tie_branches"):

@@ -10,7 +10,8 @@ rest are the enabled reuse directions in canonical order). Step 0 is always comp
 - :func:`budget_codes` (beyond the paper): per sample, rank every (k, b) by its compute
   probability and compute exactly the top ``round((1 - sparsity) * K * nb)`` (step 0 counts towards
   the budget and is always kept); the other decisions take their best reuse direction. One trained
-  pruner then serves any target sparsity.
+  pruner then serves any target sparsity. ``whole_steps=True`` (a pruner with tied branches) ranks
+  steps instead and computes the top ``round((1 - sparsity) * K)`` of them with every branch.
 """
 from __future__ import annotations
 
@@ -36,29 +37,33 @@ def ste_gates(logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return hard - p.detach() + p, p
 
 
-def _budget_options(p: torch.Tensor, sparsity: float) -> torch.Tensor:
+def _budget_options(p: torch.Tensor, sparsity: float, whole_steps: bool = False) -> torch.Tensor:
     """Option per (sample, step, branch) computing exactly the top ``1 - sparsity`` by compute
-    probability (step 0 always), the most likely reuse direction elsewhere: [B, K, nb]."""
+    probability (step 0 always), the most likely reuse direction elsewhere: [B, K, nb]. With
+    ``whole_steps`` the unit is a step (score: its branches' mean compute probability)."""
     sparsity = check_sparsity(sparsity)
     B, K, nb, O = p.shape
     if O < 2:
         raise ValueError("budget mode needs at least one reuse direction")
     score = p[..., 0].detach().clone()
+    if whole_steps:
+        score = score.mean(2, keepdim=True)
     score[:, 0] = float("inf")  # step 0 always computes
-    keep = max(nb, min(K * nb, round((1.0 - sparsity) * K * nb)))
-    flat = score.reshape(B, K * nb)
+    units = score.shape[2]
+    keep = max(units, min(K * units, round((1.0 - sparsity) * K * units)))
+    flat = score.reshape(B, K * units)
     top = flat.topk(keep, dim=1).indices
-    compute = torch.zeros_like(flat, dtype=torch.bool).scatter_(1, top, True).reshape(B, K, nb)
+    compute = torch.zeros_like(flat, dtype=torch.bool).scatter_(1, top, True).reshape(B, K, units).expand(B, K, nb)
     reuse_option = p[..., 1:].detach().argmax(-1) + 1
     return torch.where(compute, torch.zeros_like(reuse_option), reuse_option)
 
 
-def budget_ste_gates(logits: torch.Tensor, sparsity: float) -> tuple[torch.Tensor, torch.Tensor]:
+def budget_ste_gates(logits: torch.Tensor, sparsity: float, whole_steps: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Straight-through gates whose forward is the exact-budget decision (:func:`budget_codes`):
     training sees the test-time rule, the realised sparsity is fixed, and the gradient only
     re-ranks which branches compute. Returns (hard gates, soft probabilities), [B, K, nb, O]."""
     p = _force_first(logits.float().softmax(-1))
-    hard = torch.nn.functional.one_hot(_budget_options(p, sparsity), p.shape[-1]).to(p.dtype)
+    hard = torch.nn.functional.one_hot(_budget_options(p, sparsity, whole_steps), p.shape[-1]).to(p.dtype)
     return hard - p.detach() + p, p
 
 
@@ -84,10 +89,11 @@ def argmax_codes(logits: torch.Tensor, codes: Codes) -> torch.Tensor:
     return _to_codes(option, codes)
 
 
-def budget_codes(logits: torch.Tensor, codes: Codes, sparsity: float) -> torch.Tensor:
+def budget_codes(logits: torch.Tensor, codes: Codes, sparsity: float, whole_steps: bool = False) -> torch.Tensor:
     """Decision codes [B, K, nb] computing exactly ``round((1 - sparsity) * K * nb)`` branches per
-    sample (never fewer than step 0's nb), ranked by compute probability."""
-    return _to_codes(_budget_options(logits.float().softmax(-1), sparsity), codes)
+    sample (never fewer than step 0's nb), ranked by compute probability; with ``whole_steps``,
+    exactly ``round((1 - sparsity) * K)`` whole steps."""
+    return _to_codes(_budget_options(logits.float().softmax(-1), sparsity, whole_steps), codes)
 
 
 assert COMPUTE == 0  # option 0 of every head is compute

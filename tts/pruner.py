@@ -255,6 +255,7 @@ class PrunerPlan(Plan):
             raise ValueError(f"parallel must be True, False or 'auto', got {parallel!r}")
         self.parallel = parallel if mode != "ste" else False
         self.codes = pruner.config.codes
+        self._whole_steps = bool(getattr(pruner.config, "tie_branches", False))  # budget counts whole steps
         self.uses = frozenset(self.codes)
         self.soft = mode == "ste"
         self._pending: Optional[threading.Thread] = None
@@ -300,7 +301,7 @@ class PrunerPlan(Plan):
         if self.mode == "ste":
             logits = self.pruner(memory)
             self.gates, self.probs = (ste_gates(logits) if self.sparsity is None
-                                      else budget_ste_gates(logits, self.sparsity))
+                                      else budget_ste_gates(logits, self.sparsity, self._whole_steps))
             return
         memory = memory.detach()
         if not self.parallel:
@@ -330,7 +331,7 @@ class PrunerPlan(Plan):
     def _codes(self, memory: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
         logits = self.pruner(memory)
         if self.mode == "budget":
-            return budget_codes(logits, table, self.sparsity)
+            return budget_codes(logits, table, self.sparsity, self._whole_steps)
         return argmax_codes(logits, table)
 
     def _decide(self, memory: torch.Tensor, blocking: bool = False) -> None:
