@@ -30,6 +30,7 @@ import torch
 import torch.nn as nn
 
 from tts.flops import register_mac_rule
+from tts.io import checkpoint_pair
 from tts.spec import BlockSpec, BranchSpec, Lazy, Target, register_block_family, register_model_adapter
 
 __all__ = ["DiTConfig", "DiT", "DiTBlock", "DIT_CONFIGS", "dit_block_spec", "save_dit", "load_dit",
@@ -270,13 +271,6 @@ DIT_DOWNLOAD_URL = "https://dl.fbaipublicfiles.com/DiT/models/{name}"  # officia
 _OFFICIAL_SUFFIXES = (".pt", ".pth", ".bin")
 
 
-def _pair(path: Path) -> tuple[Path, Path]:
-    """``<path>.safetensors`` and ``<path>.json`` (``path`` may carry either suffix)."""
-    path = Path(path)
-    base = path.with_suffix("") if path.suffix in (".safetensors", ".json") else path
-    return base.with_name(base.name + ".safetensors"), base.with_name(base.name + ".json")
-
-
 def save_dit(model: DiT, path: Union[str, Path], metadata: Optional[dict] = None,
              dtype: Optional[torch.dtype] = None) -> None:
     """Write ``<path>.safetensors`` (weights, optionally cast to ``dtype``) and ``<path>.json`` (the
@@ -285,7 +279,7 @@ def save_dit(model: DiT, path: Union[str, Path], metadata: Optional[dict] = None
 
     from tts.io import atomic_path
 
-    weights, meta = _pair(Path(path))
+    weights, meta = checkpoint_pair(Path(path))
     state = {k: (v.to(dtype) if dtype is not None and v.is_floating_point() else v).detach().contiguous().cpu()
              for k, v in model.state_dict().items()}
     with atomic_path(weights) as tmp:
@@ -305,7 +299,7 @@ def _missing_model_error(path: Path) -> FileNotFoundError:
         return FileNotFoundError(f"no DiT checkpoint at {path}. Expected {official}.\n"
                                  "  (A tts DiT trained here instead: python eval/train_dit.py --out PATH, "
                                  "then pass PATH.)")
-    weights, meta = _pair(path)
+    weights, meta = checkpoint_pair(path)
     return FileNotFoundError(
         f"no DiT checkpoint at {path}. Expected either\n"
         f"  - a tts DiT: {weights} + {meta} (train one: python eval/train_dit.py --out {weights.with_suffix('')}), or\n"
@@ -392,7 +386,7 @@ def load_dit(path: Union[str, Path], config: Union[None, str, DiTConfig] = None,
         cfg = dit_config_from_state_dict(state, config, num_heads)
         info = {"source": str(path), "format": "official-state-dict"}
     else:
-        weights, meta = _pair(path)
+        weights, meta = checkpoint_pair(path)
         if not (weights.is_file() and meta.is_file()):
             raise _missing_model_error(path)
         from safetensors.torch import load_file

@@ -20,7 +20,7 @@ import torch
 import torch.nn as nn
 from diffusers.utils.torch_utils import randn_tensor
 
-from tts.io import atomic_path
+from tts.io import atomic_path, checkpoint_pair
 from tts.spec import Target, register_model_adapter
 
 from .diffusion_policy import DPTransformerConfig, TransformerForDiffusion, _adapt as _adapt_model
@@ -178,13 +178,13 @@ def save_policy(policy: DiffusionTransformerLowdimPolicy, path: Path, metadata: 
     """``path.safetensors`` (weights, stored as ``dtype``; normaliser in fp32) + ``path.json``."""
     from safetensors.torch import save_file
 
-    path = Path(path).with_suffix("")
+    weights, meta_path = checkpoint_pair(path)
     state = {k: (v.to(dtype) if k.startswith("model.") and v.is_floating_point() else v).contiguous()
              for k, v in policy.state_dict().items()}
-    with atomic_path(path.with_suffix(".safetensors")) as tmp:
+    with atomic_path(weights) as tmp:
         save_file(state, str(tmp))
     meta = {"format": "tts-dp-lowdim-v1", "config": asdict(policy.cfg), "metadata": metadata or {}}
-    with atomic_path(path.with_suffix(".json")) as tmp:
+    with atomic_path(meta_path) as tmp:
         tmp.write_text(json.dumps(meta, indent=2))
 
 
@@ -230,8 +230,7 @@ def load_policy(path: Path, trust_pickle: bool = False) -> DiffusionTransformerL
         return _from_official(payload).eval()
     from safetensors.torch import load_file
 
-    base = path.with_suffix("")
-    meta_path, weights = base.with_suffix(".json"), base.with_suffix(".safetensors")
+    weights, meta_path = checkpoint_pair(path)
     for p in (meta_path, weights):
         if not p.exists():
             raise FileNotFoundError(f"{p} not found (a tts policy is a .safetensors + .json pair)")

@@ -18,6 +18,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO  # noqa: E402
+from tts.io import checkpoint_pair  # noqa: E402
 
 DEFAULT_CKPT = REPO / "checkpoints" / "lift_dpt"
 
@@ -69,7 +70,7 @@ def main(argv=None) -> None:
         print(f"DiT-S/2, {r['plan']}: {r['speedup']:.2f}x, {r['macs_ratio']:.2f}x fewer MACs, "
               f"output rel. error {r['output_rel_error_vs_dense']:.3f}")
         return
-    if not args.checkpoint.with_suffix(".json").exists():
+    if not checkpoint_pair(args.checkpoint)[1].exists():
         raise SystemExit(f"{args.checkpoint}.json not found: train it with eval/train_policy.py (see README)")
     plan = args.plan
     if plan.startswith("file:") and not Path(plan[5:]).is_absolute():

@@ -32,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, provenance, write_json, parse_args  # noqa: E402
 
 import tts  # noqa: E402
+from tts.io import checkpoint_pair  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 from tts.adapters.robosuite_tasks import OBS_KEYS, TASKS, low_dim_obs, make_env, reset_env  # noqa: E402
 
@@ -210,7 +211,7 @@ def _pruner_metadata(args) -> Optional[dict]:
     """How the pruner of a ``--method tts`` run was trained (from its JSON), for the tables."""
     if args.method != "tts":
         return None
-    meta = json.loads(args.pruner.with_suffix(".json").read_text())
+    meta = json.loads(checkpoint_pair(args.pruner)[1].read_text())
     keep = ("n_train_episodes", "sparsity", "paired", "loss_space", "static", "directions", "epochs", "git_sha",
             "command", "pruner_macs_per_call", "best_epoch")
     return {"path": str(args.pruner), "config": meta["config"],

@@ -286,7 +286,7 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
         episodes.append({"seed": e, "success": True, "obs": obs, "action_pred": np.stack(preds),
                          "action": np.stack(preds)[:, 1:9], "noise_seed": 100 * e + np.arange(n)})
     save(tmp_path / "traj.pt", episodes, {"command": "test"})
-    out = tmp_path / "pruner"
+    out = tmp_path / "pruner_0.6"  # a dot in the name is not a suffix
     args = ["--trajectories", str(tmp_path / "traj.pt"), "--checkpoint", str(tmp_path / "policy"), "--out", str(out),
             "--sparsity", "0.6", "--epochs", "3", "--batch", "2", "--n-train", "4", "--n-val", "2", "--lr", "0.02",
             "--hidden", "16", "--paired", "--run-dir", str(tmp_path / "run")]
@@ -303,6 +303,11 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
     # resuming a finished run trains no further epoch and keeps the history
     train_pruner.main(args + ["--resume"])
     assert len(load_pruner(out).metadata["history"]) == 3
+    import argparse
+
+    import robot  # the eval report reads the pruner's training metadata from the same pair of files
+
+    assert robot._pruner_metadata(argparse.Namespace(method="tts", pruner=out))["n_train_episodes"] == 4
 
 
 def test_distill_schedule_warm_start_reproduces_a_static_grid():

@@ -75,10 +75,12 @@ def test_predict_action_shapes_and_determinism():
         pol.predict_action({k: v for k, v in obs_batch(1).items() if k != "robot0_eef_pos"})
 
 
-def test_save_load_round_trip(tmp_path):
+@pytest.mark.parametrize("name", ["p", "p_0.93"])  # a dot in the name is not a suffix
+def test_save_load_round_trip(tmp_path, name):
     pol = small_policy()
-    save_policy(pol, tmp_path / "p", metadata={"note": "test"}, dtype=torch.float32)
-    back = load_policy(tmp_path / "p")
+    save_policy(pol, tmp_path / name, metadata={"note": "test"}, dtype=torch.float32)
+    assert sorted(f.name for f in tmp_path.iterdir()) == [f"{name}.json", f"{name}.safetensors"]
+    back = load_policy(tmp_path / name)
     g = lambda: torch.Generator().manual_seed(1)  # noqa: E731
     assert torch.equal(pol.predict_action(obs_batch(2), g())["action"], back.predict_action(obs_batch(2), g())["action"])
     with pytest.raises(FileNotFoundError):

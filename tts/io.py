@@ -1,4 +1,5 @@
-"""Atomic file writes: results and checkpoints are never left half-written by an interruption."""
+"""Atomic file writes (results and checkpoints are never left half-written by an interruption), and
+the weights + config file pair of a checkpoint."""
 from __future__ import annotations
 
 import contextlib
@@ -6,7 +7,7 @@ import os
 from pathlib import Path
 from typing import Iterator
 
-__all__ = ["atomic_path"]
+__all__ = ["atomic_path", "checkpoint_pair"]
 
 
 @contextlib.contextmanager
@@ -22,3 +23,12 @@ def atomic_path(path: Path, suffix: str = "") -> Iterator[Path]:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def checkpoint_pair(path: Path) -> tuple[Path, Path]:
+    """(``<path>.safetensors``, ``<path>.json``). The suffixes are appended, so names with dots
+    (``lift_0.93``) keep them; a path given with either suffix names the same pair."""
+    path = Path(path)
+    if path.suffix in (".json", ".safetensors"):
+        path = path.with_suffix("")
+    return path.with_name(path.name + ".safetensors"), path.with_name(path.name + ".json")

@@ -31,7 +31,7 @@ import torch
 import torch.nn as nn
 
 from .gates import argmax_codes, budget_codes, budget_ste_gates, ste_gates
-from .io import atomic_path
+from .io import atomic_path, checkpoint_pair
 from .plans import COMPUTE, DIRECTIONS, TIMESTEP, Plan, check_directions, check_sparsity
 
 __all__ = ["PrunerConfig", "Pruner", "StaticRouter", "build_pruner", "PrunerPlan", "pruner_loss", "save_pruner",
@@ -402,20 +402,11 @@ class PrunerPlan(Plan):
 
 
 # -------------------------------------------------------------------- checkpoints
-def _pruner_files(path: Path) -> tuple[Path, Path]:
-    """(<path>.safetensors, <path>.json): the suffix is appended, so names with dots (``tts_0.8``)
-    keep them; a path given with either suffix names the pair."""
-    path = Path(path)
-    if path.suffix in (".json", ".safetensors"):
-        path = path.with_suffix("")
-    return Path(f"{path}.safetensors"), Path(f"{path}.json")
-
-
 def save_pruner(pruner: PrunerModule, path: Path, metadata: Optional[dict] = None) -> None:
     """``<path>.safetensors`` (weights) + ``<path>.json`` (config and provenance), atomically."""
     from safetensors.torch import save_file
 
-    weights, meta = _pruner_files(path)
+    weights, meta = checkpoint_pair(path)
     state = {k: v.detach().contiguous().cpu() for k, v in pruner.state_dict().items()}
     with atomic_path(weights) as tmp:
         save_file(state, str(tmp))
@@ -427,7 +418,7 @@ def save_pruner(pruner: PrunerModule, path: Path, metadata: Optional[dict] = Non
 def load_pruner(path: Path) -> PrunerModule:
     from safetensors.torch import load_file
 
-    weights, meta = _pruner_files(path)
+    weights, meta = checkpoint_pair(path)
     if not meta.exists():
         raise FileNotFoundError(f"no pruner config at {meta} (expected <path>.json next to <path>.safetensors)")
     doc = json.loads(meta.read_text())
