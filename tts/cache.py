@@ -127,7 +127,7 @@ class ReuseCache:
         self.timestep: list = [None] * self.num_branches  # tensors, or TaylorSlots when forecasting
         self.rollout: list[list[Optional[torch.Tensor]]] = []
         self.version = 0  # bumped by every write and clear: keys the memo of step_total
-        self._sums: Optional[tuple[int, list[torch.Tensor], int]] = None  # (version, per-order sums, step)
+        self._sums: Optional[tuple[int, TaylorSlot]] = None  # (version, slots summed over branches)
 
     # -- lifecycle -------------------------------------------------------------------------------
     def begin_call(self) -> None:
@@ -159,13 +159,9 @@ class ReuseCache:
     def step_total(self, codes: Sequence[int], k: int) -> torch.Tensor:
         """Sum over branches b of ``read(codes[b], b, k)``: what a fused step adds to the stream."""
         if all(c == TIMESTEP for c in codes):
-            sums = self._timestep_sums()
-            if sums is not None:
-                derivs, last = sums
-                out = derivs[0]
-                for i, d in enumerate(derivs[1:], 1):
-                    out = torch.add(out, d, alpha=float(k - last) ** i / math.factorial(i))
-                return out
+            summed = self._timestep_sum()
+            if summed is not None:
+                return summed.forecast(k)
         total = None
         for b, code in enumerate(codes):
             d = self.read(code, b, k)
@@ -174,23 +170,24 @@ class ReuseCache:
             total = d if total is None else total + d
         return total
 
-    def _timestep_sums(self) -> Optional[tuple[list[torch.Tensor], int]]:
-        """Per-order sums over branches of the timestep slots, or None when the slots do not share
-        one history (samples or branches computed at different steps): then sum branch by branch."""
+    def _timestep_sum(self) -> Optional[TaylorSlot]:
+        """The timestep slots summed over branches, per Taylor order (a forecast is linear in its
+        derivatives), or None when they do not share one history (samples or branches computed at
+        different steps): then the step is summed branch by branch."""
         if self._sums is not None and self._sums[0] == self.version:
-            return self._sums[1], self._sums[2]
+            return self._sums[1]
         slots = self.timestep
         if not self.forecast:
-            derivs, last = [torch.stack(slots).sum(0)], 0
+            summed = TaylorSlot(torch.stack(slots).sum(0), 0, 0)
         else:
             first = slots[0]
             if any(torch.is_tensor(s.step) or torch.is_tensor(s.valid) or s.step != first.step
                    or len(s.derivs) != len(first.derivs) for s in slots):
                 return None
-            derivs = [torch.stack([s.derivs[i] for s in slots]).sum(0) for i in range(len(first.derivs))]
-            last = first.step
-        self._sums = (self.version, derivs, last)
-        return derivs, last
+            summed = TaylorSlot(torch.stack([s.derivs[0] for s in slots]).sum(0), first.step, first.dim)
+            summed.derivs += [torch.stack([s.derivs[i] for s in slots]).sum(0) for i in range(1, len(first.derivs))]
+        self._sums = (self.version, summed)
+        return summed
 
     # -- writes (compute only) -------------------------------------------------------------------
     def _rollout_row(self, k: int) -> list[Optional[torch.Tensor]]:
