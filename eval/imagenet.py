@@ -318,6 +318,10 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     accelerator.wait_for_everyone()
     wall = time.perf_counter() - t_start
     meters = gather_object([vars(meter)])
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        # the last collective: tear gloo down before a process exits (an open group aborted rank 1
+        # at interpreter exit, "terminate called without an active exception", under load)
+        torch.distributed.destroy_process_group()
     if acc is not None:
         plan_desc = acc.plan.describe()
         acc.remove()
