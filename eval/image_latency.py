@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import parse_args, provenance, write_json  # noqa: E402
-from imagenet import build_accelerator, sample_noise  # noqa: E402
+from imagenet import build_accelerator, describe, last_call_counts, sample_noise, sampler_of  # noqa: E402
 
 from tts.adapters.dit import load_dit, sample_dit  # noqa: E402
 
@@ -37,6 +37,8 @@ METHODS = {
     "tts_taylor2": dict(method="tts", use_sparsity=True, forecast=2, pruner="taylor"),
     "steps_o2": dict(method="static", forecast=2, plan="steps"),
     "tts_steps_o2": dict(method="tts", use_sparsity=True, forecast=2, pruner="steps"),
+    "diffusers_fbc": dict(method="diffusers_fbc", use_sparsity=True),
+    "diffusers_taylorseer_n5_o2": dict(method="diffusers_taylorseer", fora_n=5, taylor_order=2),
 }
 
 
@@ -46,8 +48,8 @@ def method_args(name: str, args: argparse.Namespace) -> argparse.Namespace:
     pruner = {"taylor": args.pruner_taylor, "steps": args.pruner_steps, None: args.pruner}[spec.pop("pruner", None)]
     plan = args.plan_steps if spec.pop("plan", None) == "steps" else args.plan
     ns = argparse.Namespace(method=None, fora_n=5, taylor_order=1, fresh_ratio=None, plan=plan, forecast=0,
-                            pruner=str(pruner) if pruner else None,
-                            sparsity=args.sparsity if use_sparsity else None)
+                            pruner=str(pruner) if pruner else None, fbc_threshold=None, calib_seed=1,
+                            steps=args.steps, cfg=args.cfg, sparsity=args.sparsity if use_sparsity else None)
     for k, v in spec.items():
         setattr(ns, k, v)
     return ns
@@ -82,7 +84,8 @@ def main(argv=None) -> dict:
     models = {"dense": (dense, None)}
     for name in names:
         m = load_dit(args.model).eval()
-        models[name] = (m, build_accelerator(m, method_args(name, args)))
+        acc = build_accelerator(m, method_args(name, args))
+        models[name] = (sampler_of(m, acc), acc)
     size, C, n_cls = dense.config.input_size, dense.in_channels, dense.config.num_classes
     rows = []
     for B in args.batch:
@@ -101,14 +104,12 @@ def main(argv=None) -> dict:
         row = {"batch": B, "dense_ms": md * 1e3, "methods": {}}
         for name in names:
             model, acc = models[name]
-            s = acc.summary()
-            last = s.calls[-1]
-            macs_dense, macs_real = s.macs(last)
+            c = last_call_counts(acc)
             mf = float(np.median(times[name]))
             row["methods"][name] = {
-                "plan": acc.plan.describe(), "ms": mf * 1e3, "speedup": md / mf,
-                "macs_ratio": macs_dense / max(macs_real + last.pruner_macs, 1.0),
-                "sparsity_decisions": s.sparsity_of(last),
+                "plan": describe(acc), "ms": mf * 1e3, "speedup": md / mf,
+                "macs_ratio": c["macs_dense"] / max(c["macs_realised"] + c["macs_pruner"], 1.0),
+                "sparsity_decisions": c["reused"] / max(c["decisions"], 1),
             }
             print(f"batch {B}: {name:18s} {mf * 1e3:8.1f} ms vs dense {md * 1e3:8.1f} ms -> {md / mf:5.2f}x "
                   f"(MACs {row['methods'][name]['macs_ratio']:.2f}x)")

@@ -1,7 +1,7 @@
 """Class-conditional DiT sampling, dense or accelerated, into an ADM-compatible ``.npz`` (+ FID/sFID).
 
     accelerate launch [--num_processes N] eval/imagenet.py --model PATH \
-        --method dense|fora|taylorseer|toca|duca|uniform|static|tts \
+        --method dense|fora|taylorseer|toca|duca|uniform|static|tts|diffusers_fbc|diffusers_taylorseer \
         [--sparsity 0.8] [--steps 50] [--cfg 1.5] [--num-samples 2000] [--out samples.npz] [--pruner PATH] \
         [--fora-n 5] [--ref REF] [--seed 0] [--batch 64]
 
@@ -18,6 +18,13 @@ Methods (all in the tts engine; ``dense`` is the untouched model):
            between alternate aggressive (reuse all) / conservative (token refresh)
   uniform  ``tts.plans.uniform(sparsity, "timestep")``: ``--sparsity`` of the (step, branch) decisions reuse
   static   a searched schedule (``--plan``, eval/search_static.py --model): BAC-style
+  diffusers_fbc  diffusers' First Block Cache on the model converted to diffusers' DiTTransformer2DModel
+           (tts.adapters.dit_diffusers, same function): ``--fbc-threshold``, or with ``--sparsity`` the
+           threshold whose sparsity on a calibration batch (``--calib-seed``, never the evaluation's) is
+           closest (its ceiling is (depth - 1) / depth: the first block always computes)
+  diffusers_taylorseer  diffusers' TaylorSeer cache on the converted model, every block's attn1 and ff:
+           full steps 0, then every ``--fora-n``-th from step 2 (diffusers' warm-up of 1 step),
+           order ``--taylor-order``
   tts      a learned pruner (``--pruner``, see tts.Pruner): argmax decisions, or with ``--sparsity`` exactly
            that fraction reused per sample (exact-budget mode); it reads the DiT's condition memory
            (:meth:`DiT.condition_memory`, encoded once per sampling call)
@@ -62,9 +69,12 @@ from common import parse_args, provenance, write_json  # noqa: E402
 
 import tts  # noqa: E402
 from tts.adapters.dit import DiT, load_dit, sample_dit  # noqa: E402
+from tts.adapters.dit_diffusers import DiffusersCache, DiffusersDiT, calibrate_fbc_threshold  # noqa: E402
 from tts.io import atomic_path  # noqa: E402
 
-METHODS = ("dense", "fora", "taylorseer", "toca", "duca", "uniform", "static", "tts")
+METHODS = ("dense", "fora", "taylorseer", "toca", "duca", "uniform", "static", "tts", "diffusers_fbc",
+           "diffusers_taylorseer")
+CALIBRATION_IMAGES = 32
 SD_VAE_SCALE = 0.18215  # latent scale of the Stable Diffusion VAE that DiT was trained with
 
 
@@ -108,10 +118,13 @@ def load_vae(path: str, device: torch.device):
     return AutoencoderKL.from_pretrained(str(p), local_files_only=True).to(device).eval()
 
 
-def build_accelerator(model: DiT, args: argparse.Namespace) -> Optional["tts.Accelerator"]:
-    """The tts accelerator of ``--method`` (None for dense)."""
+def build_accelerator(model: DiT, args: argparse.Namespace) -> Any:
+    """The tts accelerator of ``--method`` (None for dense); for ``diffusers_*`` a
+    :class:`~tts.adapters.dit_diffusers.DiffusersCache` on a converted copy (sample ``acc.model``)."""
     if args.method == "dense":
         return None
+    if args.method.startswith("diffusers_"):
+        return build_diffusers_cache(model, args)
     if args.method == "fora":
         return tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(args.fora_n, "timestep"))
     if args.method == "taylorseer":  # FORA's interval with an order-O Taylor forecast of every reused branch
@@ -132,6 +145,51 @@ def build_accelerator(model: DiT, args: argparse.Namespace) -> Optional["tts.Acc
         raise ValueError(f"pruner {args.pruner} reads memory of width {pruner.config.memory_dim}, this DiT's "
                          f"condition memory has width {model.config.hidden_size}: it belongs to another model")
     return tts.accelerate(model, pruner.config.directions, pruner=pruner, sparsity=args.sparsity, forecast=forecast)
+
+
+def build_diffusers_cache(model: DiT, args: argparse.Namespace) -> DiffusersCache:
+    wrapped = DiffusersDiT.from_dit(model)
+    if args.method == "diffusers_taylorseer":
+        return DiffusersCache(wrapped, "taylorseer", interval=args.fora_n, order=args.taylor_order, warmup=1)
+    threshold = args.fbc_threshold
+    if threshold is None:
+        idx = range(CALIBRATION_IMAGES)
+        labels = torch.tensor([i % model.config.num_classes for i in idx], device=model.pos_embed.device)
+        noise = sample_noise(args.calib_seed, idx, (model.in_channels, model.config.input_size,
+                                                   model.config.input_size))
+        threshold, reached = calibrate_fbc_threshold(wrapped, args.sparsity, labels, noise, steps=args.steps,
+                                                     cfg_scale=args.cfg)
+        args.fbc_calibration = {"threshold": threshold, "sparsity": reached, "seed": args.calib_seed,
+                                "images": CALIBRATION_IMAGES}
+    return DiffusersCache(wrapped, "fbc", threshold=threshold)
+
+
+def is_diffusers_cache(acc: Any) -> bool:
+    return isinstance(acc, DiffusersCache)
+
+
+def sampler_of(model: DiT, acc: Any):
+    """The module to sample: the converted copy for a diffusers cache, else ``model``."""
+    return acc.model if is_diffusers_cache(acc) else model
+
+
+def describe(acc: Any) -> str:
+    return acc.describe() if is_diffusers_cache(acc) else acc.plan.describe()
+
+
+def last_call_counts(acc: Any) -> dict[str, float]:
+    """decisions, reused, macs_dense, macs_realised, macs_pruner of ``acc``'s last sampling call."""
+    if is_diffusers_cache(acc):
+        call = acc.last_call()
+        decisions = 2 * acc.depth * call.forwards
+        return dict(decisions=decisions, reused=round(call.sparsity(acc.depth) * decisions),
+                    macs_dense=call.macs_dense(), macs_realised=call.macs, macs_pruner=0.0)
+    summary = acc.summary()
+    call = summary.calls[-1]
+    d = call.decisions()
+    dense, realised = summary.macs(call)
+    return dict(decisions=d.numel(), reused=int((d != tts.plans.COMPUTE).sum()), macs_dense=dense,
+                macs_realised=realised, macs_pruner=call.pruner_macs)
 
 
 def mlp_share(model: DiT) -> float:
@@ -161,13 +219,19 @@ def check_args(args: argparse.Namespace) -> None:
         raise ValueError(f"--method {args.method} needs exactly one of --fresh-ratio and --sparsity")
     if args.fresh_ratio is not None and args.method not in ("toca", "duca"):
         raise ValueError("--fresh-ratio is only used by --method toca / duca")
-    if args.method in ("dense", "fora", "taylorseer", "static") and args.sparsity is not None:
+    if args.method == "diffusers_fbc" and (args.sparsity is None) == (args.fbc_threshold is None):
+        raise ValueError("--method diffusers_fbc needs exactly one of --fbc-threshold and --sparsity")
+    if args.fbc_threshold is not None and args.method != "diffusers_fbc":
+        raise ValueError("--fbc-threshold is only used by --method diffusers_fbc")
+    if args.method == "diffusers_fbc" and args.sparsity is not None and args.calib_seed == args.seed:
+        raise ValueError("--calib-seed must differ from --seed (never calibrate on the evaluation's noise)")
+    if args.method in ("dense", "fora", "taylorseer", "static", "diffusers_taylorseer") and args.sparsity is not None:
         raise ValueError(f"--sparsity does not apply to --method {args.method}")
     if args.pruner and args.method != "tts":
         raise ValueError("--pruner is only used by --method tts")
     if getattr(args, "forecast", 0) and args.method not in ("static", "tts"):
         raise ValueError("--forecast applies to --method static / tts (taylorseer has --taylor-order)")
-    if args.method in ("fora", "taylorseer", "toca", "duca") and args.fora_n < 1:
+    if args.method in ("fora", "taylorseer", "toca", "duca", "diffusers_taylorseer") and args.fora_n < 1:
         raise ValueError("--fora-n must be >= 1")
     for name in ("num_samples", "batch", "steps"):
         if getattr(args, name) < 1:
@@ -195,15 +259,12 @@ class Meter:
         self.sample_s += seconds
         if acc is None:
             return
-        summary = acc.summary()
-        call = summary.calls[-1]
-        d = call.decisions()
-        self.decisions += d.numel()
-        self.reused += int((d != tts.plans.COMPUTE).sum())
-        dense, realised = summary.macs(call)
-        self.macs_dense += dense
-        self.macs_realised += realised
-        self.macs_pruner += call.pruner_macs
+        c = last_call_counts(acc)
+        self.decisions += c["decisions"]
+        self.reused += c["reused"]
+        self.macs_dense += c["macs_dense"]
+        self.macs_realised += c["macs_realised"]
+        self.macs_pruner += c["macs_pruner"]
 
 
 def dense_macs_per_image(model: DiT, steps: int, cfg: float) -> float:
@@ -235,7 +296,10 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     ap.add_argument("--fora-n", type=int, default=5, help="fora / taylorseer / toca / duca: compute every N-th step")
     ap.add_argument("--fresh-ratio", type=float, default=None,
                     help="toca / duca: fraction of MLP tokens recomputed at a refresh step (or give --sparsity)")
-    ap.add_argument("--taylor-order", type=int, default=1, help="taylorseer: forecast order O")
+    ap.add_argument("--taylor-order", type=int, default=1, help="taylorseer / diffusers_taylorseer: forecast order O")
+    ap.add_argument("--fbc-threshold", type=float, default=None, help="diffusers_fbc: FBCache threshold")
+    ap.add_argument("--calib-seed", type=int, default=1,
+                    help="diffusers_fbc with --sparsity: noise seed of the threshold calibration batch")
     ap.add_argument("--plan", default=None, help="static: a searched schedule JSON (eval/search_static.py)")
     ap.add_argument("--forecast", type=int, default=0,
                     help="static / tts: TaylorSeer-style forecast of order O for timestep reuse (0 = plain reuse)")
@@ -270,6 +334,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     model = model.to(device)
     vae = load_vae(args.vae, device) if args.vae else None
     acc = build_accelerator(model, args)
+    sampler = sampler_of(model, acc)
 
     num_classes = model.config.num_classes
     size = model.config.input_size
@@ -290,7 +355,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
             noise = sample_noise(args.seed, idx, (model.in_channels, size, size))
             gen = torch.Generator(device="cpu").manual_seed(index_seed(args.seed, idx[0]))  # ddpm step noise
             t0 = time.perf_counter()
-            x = sample_dit(model, labels, steps=args.steps, cfg_scale=args.cfg, noise=noise, generator=gen,
+            x = sample_dit(sampler, labels, steps=args.steps, cfg_scale=args.cfg, noise=noise, generator=gen,
                            scheduler=args.scheduler)
             if vae is not None:
                 with torch.no_grad():
@@ -323,7 +388,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
         # at interpreter exit, "terminate called without an active exception", under load)
         torch.distributed.destroy_process_group()
     if acc is not None:
-        plan_desc = acc.plan.describe()
+        plan_desc = describe(acc)
         acc.remove()
     else:
         plan_desc = "dense (untouched model)"
@@ -348,10 +413,12 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
         "method": args.method,
         "plan": plan_desc,
         "sparsity_target": args.sparsity,
-        "fora_n": args.fora_n if args.method in ("fora", "taylorseer", "toca", "duca") else None,
-        "taylor_order": args.taylor_order if args.method == "taylorseer" else None,
+        "fora_n": args.fora_n if args.method in ("fora", "taylorseer", "toca", "duca", "diffusers_taylorseer") else None,
+        "taylor_order": args.taylor_order if args.method in ("taylorseer", "diffusers_taylorseer") else None,
         "forecast": args.forecast,
-        "fresh_ratio": getattr(acc.plan, "fresh_ratio", None) if acc is not None else None,
+        "fresh_ratio": getattr(getattr(acc, "plan", None), "fresh_ratio", None),
+        "fbc_threshold": acc.config.threshold if args.method == "diffusers_fbc" else None,
+        "fbc_calibration": getattr(args, "fbc_calibration", None),
         "pruner": args.pruner,
         "steps": args.steps,
         "scheduler": args.scheduler,

@@ -73,8 +73,9 @@ def latency_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
-IMAGE_ROWS = ("dense", "fora_n5", "taylorseer_n5_o2", "toca_n6", "duca_n6", "static_bac", "tts",
-              "static_bac_taylor2", "tts_taylor2", "steps_o2", "tts_steps_o2")
+IMAGE_ROWS = ("dense", "fora_n5", "taylorseer_n5_o2", "toca_n6", "duca_n6", "diffusers_fbc",
+              "diffusers_taylorseer_n5_o2", "static_bac", "tts", "static_bac_taylor2", "tts_taylor2", "steps_o2",
+              "tts_steps_o2")
 
 
 def image_table(folder: Path) -> str:

@@ -44,7 +44,16 @@ run steps_o2 --method static --plan results/schedules/digits_steps_$RHO.json --f
 train_pruner digits_tts_steps_$RHO --prior results/schedules/digits_steps_$RHO.json --tie-branches --forecast 2 \
     --train-budget --prior-margin 0.5 --lr 3e-3
 run tts_steps_o2 --method tts --pruner checkpoints/pruners/digits_tts_steps_$RHO --sparsity $RHO --forecast 2
-[ -f results/image/latency.json ] && [ -z "${FORCE:-}" ] || python eval/image_latency.py --model checkpoints/digits_dit \
+# diffusers' own caches (diffusers.hooks) on the same model converted to diffusers' DiTTransformer2DModel
+# (tts.adapters.dit_diffusers): First Block Cache at the threshold calibrated to RHO on seed-1 noise,
+# TaylorSeer on every block's attn1 + ff (FORA's interval 5 after diffusers' 1-step warm-up, order 2)
+run diffusers_fbc --method diffusers_fbc --sparsity $RHO
+run diffusers_taylorseer_n5_o2 --method diffusers_taylorseer --fora-n 5 --taylor-order 2
+has_rows() {  # latency.json exists and has a row for every method named
+  python -c "import json, sys; r = json.load(open('results/image/latency.json'))['rows'][0]['methods']; \
+sys.exit(not set(sys.argv[1:]) <= set(r))" "$@" 2>/dev/null
+}
+has_rows diffusers_fbc diffusers_taylorseer_n5_o2 && [ -z "${FORCE:-}" ] || python eval/image_latency.py --model checkpoints/digits_dit \
     --pruner checkpoints/pruners/digits_tts_budget_$RHO --pruner-taylor checkpoints/pruners/digits_tts_taylor2_$RHO \
     --pruner-steps checkpoints/pruners/digits_tts_steps_$RHO --plan-steps results/schedules/digits_steps_$RHO.json \
     --plan results/schedules/digits_bac_$RHO.json --sparsity $RHO --out results/image/latency.json
