@@ -12,7 +12,8 @@ is timed; the JSON reports the median / p90 latency of a policy call (batch as r
 MACs (dense vs realised, decoder branches + rest, profiled analytically; with a pruner, its MACs
 are reported and added). ``--method tts`` runs a trained pruner: argmax decisions (the paper) or,
 with ``--sparsity``, exactly that fraction reused per call (ranked by the pruner). One JSON per run,
-written atomically after each wave; ``--resume`` skips the seeds already finished.
+written atomically after each wave; ``--resume`` skips the seeds already finished (and the whole
+run when every requested episode is in the file).
 """
 from __future__ import annotations
 
@@ -181,6 +182,9 @@ def main(argv=None) -> dict:
         prev = json.loads(out.read_text())
         done = {e["seed"]: e for e in prev["episodes"]}
         latencies = prev.get("latencies_s", [])
+        if all(s in done for s in seeds):
+            print(f"[skip] {out}: all {len(seeds)} episodes done")
+            return prev
         print(f"resuming: {len(done)} episodes already in {out}")
 
     policy = load_policy(args.checkpoint, trust_pickle=args.trust_pickle)

@@ -73,6 +73,19 @@ def latency_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+def agreement_table(folder: Path) -> str:
+    """How often a pruner's decisions equal its prior (eval/pruner_agreement.py: agreement_*.json)."""
+    rows = ["| task | pruner | prior | exact budget | episodes not trained on | calls identical to the prior | "
+            "decisions identical | git SHA |", "|---|---|---|---|---|---|---|---|"]
+    for path in sorted(folder.glob("agreement_*.json")):
+        r = json.loads(path.read_text())
+        budget = "argmax" if r["sparsity"] is None else f"{r['sparsity']:g}"
+        rows.append(f"| {r['task']} | {Path(r['pruner']).name} | {Path(r['prior']).name} | {budget} | {r['episodes']} | "
+                    f"{r['calls_identical']}/{r['calls']} ({100 * r['calls_identical_fraction']:.1f}%) | "
+                    f"{100 * r['decisions_identical_fraction']:.2f}% | `{r['provenance']['git_sha'][:10]}` |")
+    return "\n".join(rows) + "\n"
+
+
 IMAGE_ROWS = ("dense", "fora_n5", "taylorseer_n5_o2", "toca_n6", "duca_n6", "diffusers_fbc",
               "diffusers_taylorseer_n5_o2", "static_bac", "tts", "static_bac_taylor2", "tts_taylor2", "steps_o2",
               "tts_steps_o2")
@@ -165,11 +178,14 @@ def main() -> None:
             "included.\n\n## Success, mean over evaluation seeds\n\n" + summary_table(folder)
             + "\n## Every run\n\n" + robot_table(folder)
             + "\n## Policy-call latency, accelerated vs dense in the same process (`eval/latency.py`)\n\n"
-            + latency_table(folder))
+            + latency_table(folder)
+            + "\n## Learned pruner vs the schedule it started from (`eval/pruner_agreement.py`)\n\n"
+            + agreement_table(folder))
     write_atomic(folder / "TABLE.md", text)
     readme = REPO / "README.md"
     body = readme.read_text()
-    tables = [("robot", summary_table(folder)), ("latency", latency_table(folder))]
+    tables = [("robot", summary_table(folder)), ("latency", latency_table(folder)),
+              ("agreement", agreement_table(folder))]
     if image.exists() and any(image.glob("digits_*.json")):
         tables.append(("image", image_table(image)))
     for name, table in tables:

@@ -18,9 +18,8 @@ for n in ${NS:-1 2 4 8 16}; do
   fi
   for seed in 100000 100050 100100; do
     out=results/robot/${TASK}_static-${TASK}_steps_${RHO}_n${n}_${seed}.json
-    if [ -f "$out" ] && [ -z "${FORCE:-}" ] && python -c "import json,sys; d=json.load(open(sys.argv[1])); \
-        sys.exit(d['episodes_done'] < d['episodes_requested'])" "$out"; then echo "[skip] $out"; continue; fi
-    # --resume: a run cut off mid-way keeps its finished waves
+    [ -n "${FORCE:-}" ] && rm -f "$out"
+    # --resume: skips a finished evaluation, continues one that was cut off
     python eval/robot.py --task "$TASK" --checkpoint checkpoints/${TASK}_dpt --method static \
         --plan "file:$sched" --episodes 50 --seed "$seed" --resume
   done

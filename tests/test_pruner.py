@@ -308,6 +308,33 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
     import robot  # the eval report reads the pruner's training metadata from the same pair of files
 
     assert robot._pruner_metadata(argparse.Namespace(method="tts", pruner=out))["n_train_episodes"] == 4
+    import pruner_agreement
+
+    with pytest.raises(ValueError, match="without --prior"):
+        pruner_agreement.main(["--task", "lift", "--checkpoint", str(tmp_path / "policy"), "--pruner", str(out),
+                               "--trajectories", str(tmp_path / "traj.pt")])
+
+
+def test_pruner_agreement_counts_calls_and_decisions_equal_to_the_prior():
+    import sys
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
+    import pruner_agreement
+
+    prior = torch.tensor([[COMPUTE, COMPUTE], [TIMESTEP, TIMESTEP], [TIMESTEP, COMPUTE]], dtype=torch.int8)
+    same = prior[:, None, :].expand(3, 2, 2).clone()  # [K, B, nb], both samples as the prior
+    moved = same.clone()
+    moved[1, 1, 0] = COMPUTE  # sample 1 computes one more branch at step 1
+    calls = [SimpleNamespace(dense=True, decisions=lambda: torch.zeros(3, 2, 2, dtype=torch.int8)),
+             SimpleNamespace(dense=False, decisions=lambda: same),
+             SimpleNamespace(dense=False, decisions=lambda: moved)]
+    res = pruner_agreement.agreement(calls, prior)
+    assert (res["calls"], res["calls_identical"]) == (4, 3)  # the dense call is left out
+    assert (res["decisions"], res["decisions_identical"]) == (24, 23)
+    with pytest.raises(ValueError, match="do not fit"):
+        pruner_agreement.agreement(calls[1:], prior[:2])
 
 
 def test_distill_schedule_warm_start_reproduces_a_static_grid():
