@@ -54,6 +54,9 @@ def add_training_args(ap: argparse.ArgumentParser, *, sparsity: float, direction
                     help="logit of the prior's option (smaller: the pruner can move away from it sooner)")
     ap.add_argument("--tie-branches", action="store_true",
                     help="one decision per step for all branches (step-level pruner; use with a step-level prior)")
+    ap.add_argument("--step-query", action="store_true",
+                    help="with --tie-branches: one decoder query per step instead of one per branch "
+                         "(the same decisions' shape at ~1/num_branches of the decoder's MACs)")
     ap.add_argument("--val-mode", choices=["argmax", "budget"], default="argmax",
                     help="test-time rule used for validation and checkpoint selection (budget: exactly --sparsity)")
     ap.add_argument("--seed", type=int, default=0)

@@ -72,7 +72,7 @@ def main(argv=None) -> dict:
     cfg = model.config
     pruner = build_pruner(PrunerConfig(memory_dim=cfg.hidden_size, num_branches=2 * cfg.depth, directions=directions,
                                        hidden=args.hidden, steps=args.steps, prior=args.prior is not None,
-                                       tie_branches=args.tie_branches))
+                                       tie_branches=args.tie_branches, step_query=args.step_query))
     if args.prior is not None:
         pruner.set_prior(read_grid(args.prior, steps=args.steps, branches=2 * cfg.depth), margin=args.prior_margin)
     train_plan = PrunerPlan(pruner, mode="ste", sparsity=args.sparsity if args.train_budget else None)

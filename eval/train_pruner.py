@@ -124,7 +124,7 @@ def main(argv=None) -> None:
     pruner = build_pruner(PrunerConfig(
         memory_dim=cfg.n_emb, num_branches=3 * cfg.n_layer, directions=directions, hidden=args.hidden,
         kind="static" if args.static else "transformer", steps=K, prior=args.prior is not None,
-        tie_branches=args.tie_branches,
+        tie_branches=args.tie_branches, step_query=args.step_query,
         head_bias=[float(x) for x in args.head_bias.split(",")] if args.head_bias else None))
     if args.prior is not None:
         pruner.set_prior(read_grid(args.prior), margin=args.prior_margin)

@@ -451,3 +451,22 @@ def test_tied_pruner_decides_whole_steps_per_sample():
     assert pr.head.weight.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="tie_branches"):
         PrunerConfig(memory_dim=8, num_branches=3, kind="static", steps=4, tie_branches=True)
+
+
+def test_step_query_pruner_decides_steps_at_a_fraction_of_the_macs(tmp_path):
+    K, nb = 8, 24
+    cfg = dict(memory_dim=32, num_branches=nb, hidden=16, heads=2, ffn=32, dropout=0.0, tie_branches=True)
+    torch.manual_seed(0)
+    per_branch, per_step = Pruner(PrunerConfig(**cfg)), Pruner(PrunerConfig(**cfg, step_query=True))
+    with torch.no_grad():
+        per_step.head.weight.normal_()
+    memory = torch.randn(3, K, 2, 32)
+    logits = per_step.eval()(memory)
+    assert logits.shape == (3, K, nb, 4)  # compute + forward, timestep, rollout
+    assert torch.equal(logits, logits[:, :, :1].expand_as(logits))
+    assert not torch.equal(logits[0], logits[1])  # still per sample
+    assert per_step.macs(K, 2) < per_branch.macs(K, 2) / 4  # the decoder runs 1 query per step, not 24
+    save_pruner(per_step, tmp_path / "p")
+    assert torch.equal(load_pruner(tmp_path / "p").eval()(memory), logits)
+    with pytest.raises(ValueError, match="needs tie_branches"):
+        PrunerConfig(memory_dim=8, num_branches=3, step_query=True)

@@ -54,6 +54,7 @@ class PrunerConfig:
     prior: bool = False  # add fixed prior logits [steps, nb, O] (a searched schedule) to the pruner's own
     head_bias: Optional[list[float]] = None  # initial head bias per option (default: compute 2, reuse 0)
     tie_branches: bool = False  # one decision per (sample, step) for all branches: whole steps computed or reused
+    step_query: bool = False  # with tie_branches: one decoder query per step instead of one per branch
 
     def __post_init__(self) -> None:
         self.directions = check_directions(self.directions)
@@ -67,6 +68,8 @@ class PrunerConfig:
             raise ValueError(f"kind must be 'transformer' or 'static', got {self.kind!r}")
         if self.kind == "static" and self.tie_branches:
             raise ValueError("tie_branches applies to the transformer pruner, not the static router")
+        if self.step_query and not self.tie_branches:
+            raise ValueError("step_query (one query per step) needs tie_branches=True (step-level decisions)")
         if (self.kind == "static" or self.prior) and self.steps < 1:
             raise ValueError("a static router or a prior needs steps= (the number of denoising steps K)")
 
@@ -111,10 +114,11 @@ class Pruner(nn.Module):
         self.config = config
         c = config
         self.memory_proj = nn.Linear(c.memory_dim, c.hidden)
+        n_queries = 1 if c.step_query else c.num_branches
         if c.queries == "learned":
-            self.block_queries = nn.Parameter(_sinusoidal(c.num_branches, c.hidden))
+            self.block_queries = nn.Parameter(_sinusoidal(n_queries, c.hidden))
         else:
-            self.register_buffer("block_queries", _sinusoidal(c.num_branches, c.hidden), persistent=False)
+            self.register_buffer("block_queries", _sinusoidal(n_queries, c.hidden), persistent=False)
         self.layer = _QueryDecoderLayer(c.hidden, c.heads, c.ffn, c.dropout)
         self.head = nn.Linear(c.hidden, len(c.codes))
         for lin in (self.memory_proj, self.head):
@@ -151,11 +155,12 @@ class Pruner(nn.Module):
             )
         B, K, Tc, D = memory.shape
         mem = self.memory_proj(memory.reshape(B * K, Tc, D))
-        q = self._query_state()
+        q = self._query_state()  # [nb or 1 (step_query), h]
         x = self.layer(q.unsqueeze(0).expand(B * K, -1, -1), mem)
-        logits = self.head(x).reshape(B, K, self.config.num_branches, -1)
-        if self.config.tie_branches:  # step-level decisions: the branches' logits averaged
-            logits = logits.mean(2, keepdim=True).expand_as(logits)
+        nb = self.config.num_branches
+        logits = self.head(x).reshape(B, K, q.shape[0], -1)
+        if self.config.tie_branches:  # step-level decisions: the branches' logits averaged (or the step query's)
+            logits = logits.mean(2, keepdim=True).expand(B, K, nb, logits.shape[-1])
         if self.prior is not None:
             if K != self.prior.shape[0]:
                 raise ValueError(f"the pruner's prior schedule has {self.prior.shape[0]} steps, the sampler runs {K}")
