@@ -368,9 +368,15 @@ def load_dit(path: Union[str, Path], config: Union[None, str, DiTConfig] = None,
     :func:`save_dit`) or from an official facebookresearch/DiT ``.pt`` state dict (e.g.
     ``DiT-XL-2-256x256.pt``; read with ``torch.load(weights_only=True)``, config from the tensor shapes,
     see :func:`dit_config_from_state_dict`). A training checkpoint ``{"model", "ema", ...}`` uses ``ema``.
-    ``model.checkpoint_info`` records the source and, for ours, the saved metadata.
+    ``model.checkpoint_info`` records the source and, for ours, the saved metadata. A directory is a
+    diffusers DiT (a ``DiTPipeline`` folder or its ``transformer/``), returned as a
+    :class:`~tts.adapters.dit_diffusers.DiffusersDiT` with the same calling convention.
     """
     path = Path(path)
+    if path.is_dir():
+        from .dit_diffusers import load_diffusers_dit
+
+        return load_diffusers_dit(path, map_location)
     if path.suffix in _OFFICIAL_SUFFIXES:
         if not path.is_file():
             raise _missing_model_error(path)

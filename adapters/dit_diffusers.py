@@ -12,7 +12,12 @@ diffusers models, so this module
   :func:`~tts.adapters.dit.sample_dit` samples it with the same noise, scheduler and batched CFG as
   every tts method, and
 - applies one of diffusers' caches with per-call state, decision counts and MACs
-  (:class:`DiffusersCache`; :func:`apply_diffusers_cache`).
+  (:class:`DiffusersCache`; :func:`apply_diffusers_cache`),
+- loads a diffusers DiT from a local folder (a ``DiTPipeline`` folder such as facebook/DiT-XL-2-256,
+  or its ``transformer`` folder) as a :class:`DiffusersDiT` (:func:`load_diffusers_dit`; what
+  :func:`~tts.adapters.dit.load_dit` does for a directory), which ``tts.accelerate`` and
+  :func:`~tts.adapters.dit.sample_dit` take like an official-layout DiT (batched CFG [cond; uncond],
+  condition memory for a pruner).
 
 ``DiTTransformer2DModel`` is not a ``CacheMixin`` in diffusers 0.42 (no ``enable_cache`` /
 ``cache_context``), so the hooks are applied with ``diffusers.hooks.apply_*`` and the cache context
@@ -21,16 +26,20 @@ are one batch, as in diffusers' DiT pipeline).
 """
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from pathlib import Path
+from typing import Any, Optional, Union
 
 import torch
 import torch.nn as nn
 
 from tts.adapters.dit import DiT, DiTConfig
+from tts.spec import Target, register_model_adapter
 
-__all__ = ["to_diffusers", "DiffusersDiT", "DiffusersCache", "apply_diffusers_cache", "DIFFUSERS_CACHES"]
+__all__ = ["to_diffusers", "DiffusersDiT", "DiffusersCache", "apply_diffusers_cache", "load_diffusers_dit",
+           "DIFFUSERS_CACHES"]
 
 DIFFUSERS_CACHES = ("fbc", "taylorseer")
 
@@ -45,7 +54,9 @@ def to_diffusers(model: DiT) -> "Any":
     condition in each block); ``final_layer.adaLN_modulation.1`` / ``final_layer.linear`` ->
     ``proj_out_1`` / ``proj_out_2``. The fixed position embedding is copied, LayerNorm eps set to the
     official 1e-6, and each block's timestep features use the official frequencies
-    (``downscale_freq_shift = 0``; diffusers' DiT default of 1 divides by ``half - 1``).
+    (``downscale_freq_shift = 0``; diffusers' DiT default of 1 divides by ``half - 1``). Neither of
+    these two survives ``save_pretrained``: diffusers rebuilds the (standard, never trained) sin-cos
+    positions and its own timestep features when it loads a folder.
     """
     from diffusers import DiTTransformer2DModel
 
@@ -117,6 +128,23 @@ class DiffusersDiT(nn.Module):
     def from_dit(cls, model: DiT) -> "DiffusersDiT":
         return cls(to_diffusers(model), model.config)
 
+    @classmethod
+    def from_transformer(cls, transformer: nn.Module) -> "DiffusersDiT":
+        """Wrap a diffusers ``DiTTransformer2DModel`` (its :class:`DiTConfig` read from its config)."""
+        c = transformer.config
+        if c.norm_type != "ada_norm_zero" or c.num_embeds_ada_norm is None:
+            raise ValueError(f"not a class-conditional DiT (norm_type {c.norm_type!r}, "
+                             f"num_embeds_ada_norm {c.num_embeds_ada_norm})")
+        out = c.out_channels or c.in_channels
+        block = transformer.transformer_blocks[0]
+        config = DiTConfig(input_size=c.sample_size, patch_size=c.patch_size, in_channels=c.in_channels,
+                           hidden_size=c.num_attention_heads * c.attention_head_dim, depth=c.num_layers,
+                           num_heads=c.num_attention_heads,
+                           mlp_ratio=block.ff.net[0].proj.out_features / (c.num_attention_heads * c.attention_head_dim),
+                           class_dropout_prob=block.norm1.emb.class_embedder.dropout_prob,
+                           num_classes=c.num_embeds_ada_norm, learn_sigma=out == 2 * c.in_channels)
+        return cls(transformer.eval(), config)
+
     @property
     def pos_embed(self) -> torch.Tensor:
         return self.transformer.pos_embed.pos_embed
@@ -141,6 +169,44 @@ class DiffusersDiT(nn.Module):
     def forward(self, x: torch.Tensor, t: torch.Tensor, y: torch.Tensor,
                 c: Optional[torch.Tensor] = None) -> torch.Tensor:
         return self.transformer(x, timestep=t, class_labels=y, return_dict=False)[0]
+
+
+def load_diffusers_dit(path: Union[str, Path], map_location: Union[str, torch.device] = "cpu") -> DiffusersDiT:
+    """A diffusers DiT from a local folder, never downloaded: a ``DiTPipeline`` folder
+    (``model_index.json`` + ``transformer/``; its ``vae/``, if present, is recorded as
+    ``model.vae_path``) or a ``DiTTransformer2DModel`` folder (``config.json`` + weights)."""
+    from diffusers import DiTTransformer2DModel
+
+    path = Path(path)
+    folder = path / "transformer" if (path / "model_index.json").is_file() else path
+    if not (folder / "config.json").is_file():
+        raise FileNotFoundError(
+            f"no diffusers DiT at {path}: expected a DiTPipeline folder (model_index.json, transformer/, vae/; "
+            "e.g. facebook/DiT-XL-2-256 downloaded with huggingface-cli download --local-dir) or its "
+            "transformer/ folder (config.json + diffusion_pytorch_model.safetensors)")
+    cls_name = json.loads((folder / "config.json").read_text()).get("_class_name")
+    if cls_name not in (None, "DiTTransformer2DModel", "Transformer2DModel"):
+        raise ValueError(f"{folder} holds a {cls_name}, not a DiTTransformer2DModel")
+    transformer = DiTTransformer2DModel.from_pretrained(str(folder), local_files_only=True, torch_dtype=torch.float32)
+    model = DiffusersDiT.from_transformer(transformer).to(map_location)
+    vae = path / "vae"
+    model.vae_path = str(vae) if (vae / "config.json").is_file() else None
+    model.checkpoint_info = {"source": str(folder), "format": "diffusers"}
+    return model
+
+
+def _adapt(model: Any) -> Optional[Target]:
+    """:class:`DiffusersDiT`: the blocks of its diffusers transformer, its condition memory for a pruner."""
+    from tts.engine import discover_sites
+
+    if not isinstance(model, DiffusersDiT):
+        return None
+    return Target(denoiser=model, sites=discover_sites(model), supports_rollout=False,
+                  condition=(model, "condition_memory"),
+                  description=f"diffusers DiT ({type(model.transformer).__name__}, official calling convention)")
+
+
+register_model_adapter("diffusers DiT, official calling convention", _adapt)
 
 
 @dataclass

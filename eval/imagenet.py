@@ -35,8 +35,9 @@ noise seeded by ``(--seed, i)``, and every process samples a disjoint contiguous
 samples do not depend on the number of processes (bit-identical when the batches line up, e.g. when
 ``--batch`` divides the shards; otherwise equal up to float round-off of batched matmuls). ``--model``:
 a tts DiT (``.safetensors`` + ``.json``, e.g. from eval/train_dit.py) or an official
-``DiT-XL-2-256x256.pt``; latent models need ``--vae`` (a local diffusers AutoencoderKL folder, e.g.
-stabilityai/sd-vae-ft-ema), pixel models ([-1, 1], 1 or 3 channels) are converted directly.
+``DiT-XL-2-256x256.pt``, or a diffusers DiT folder (a ``DiTPipeline`` folder such as facebook/DiT-XL-2-256,
+whose ``vae/`` is then the default ``--vae``, or its ``transformer/``); latent models need ``--vae`` (a local
+diffusers AutoencoderKL folder, e.g. stabilityai/sd-vae-ft-ema), pixel models ([-1, 1], 1 or 3 channels) are converted directly.
 
 Outputs (main process, atomically): ``--out`` with ``arr_0`` uint8 [N, H, W, 3] and ``arr_1`` int64 labels
 (ADM's evaluator layout), and ``<out>.json`` with FID/sFID against ``--ref`` (eval/fid.py: an ADM
@@ -148,7 +149,7 @@ def build_accelerator(model: DiT, args: argparse.Namespace) -> Any:
 
 
 def build_diffusers_cache(model: DiT, args: argparse.Namespace) -> DiffusersCache:
-    wrapped = DiffusersDiT.from_dit(model)
+    wrapped = model if isinstance(model, DiffusersDiT) else DiffusersDiT.from_dit(model)
     if args.method == "diffusers_taylorseer":
         return DiffusersCache(wrapped, "taylorseer", interval=args.fora_n, order=args.taylor_order, warmup=1)
     threshold = args.fbc_threshold
@@ -285,7 +286,8 @@ def dense_macs_per_image(model: DiT, steps: int, cfg: float) -> float:
 # ---------------------------------------------------------------------------------------------- main
 def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--model", required=True, help="tts DiT (<path>.safetensors + .json) or an official DiT .pt")
+    ap.add_argument("--model", required=True, help="tts DiT (<path>.safetensors + .json), an official DiT .pt or a "
+                                                   "diffusers DiT folder (DiTPipeline or its transformer/)")
     ap.add_argument("--config", default=None, help="DIT_CONFIGS name for an official .pt (e.g. DiT-XL/2); default: "
                                                     "inferred from the tensor shapes")
     ap.add_argument("--vae", default=None, help="local diffusers AutoencoderKL folder (latent DiTs)")
@@ -321,6 +323,8 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     check_args(args)
 
     model = load_dit(args.model, config=args.config)  # clear FileNotFoundError before any process group starts
+    if args.vae is None and getattr(model, "vae_path", None):  # a DiTPipeline folder with its vae/
+        args.vae = model.vae_path
     if args.vae is None and model.in_channels not in (1, 3):
         raise ValueError(f"{args.model} is a latent DiT ({model.in_channels} channels): pass --vae FOLDER "
                          "(diffusers AutoencoderKL, e.g. stabilityai/sd-vae-ft-ema) to decode its samples")

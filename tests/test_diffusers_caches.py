@@ -130,3 +130,72 @@ def test_imagenet_cli_checks_the_diffusers_cache_arguments():
     with pytest.raises(ValueError, match="--sparsity does not apply"):
         imagenet.check_args(args(method="diffusers_taylorseer", sparsity=0.8))
     imagenet.check_args(args(fbc_threshold=0.1))  # valid
+
+
+def _pipeline_folder(tmp_path, model):
+    """A DiTPipeline-style folder (model_index.json + transformer/) holding ``model`` converted, with
+    diffusers' own timestep features (what a downloaded diffusers DiT computes). diffusers does not
+    save the fixed sin-cos position embedding (it recomputes it), so the randomised one is reset."""
+    from tts.adapters.dit import sincos_pos_embed_2d
+
+    d, grid = model.pos_embed.shape[-1], model.config.input_size // model.config.patch_size
+    model.pos_embed.data.copy_(sincos_pos_embed_2d(d, grid)[None])
+    tr = to_diffusers(model)
+    for block in tr.transformer_blocks:
+        block.norm1.emb.time_proj.downscale_freq_shift = 1
+    tr.save_pretrained(tmp_path / "pipe" / "transformer")
+    (tmp_path / "pipe" / "model_index.json").write_text('{"_class_name": "DiTPipeline"}')
+    return tmp_path / "pipe", tr
+
+
+def test_diffusers_folder_loads_samples_and_accelerates(tmp_path):
+    import tts
+    from tts.adapters.dit import load_dit
+
+    model, labels, noise = _setup()
+    folder, tr = _pipeline_folder(tmp_path, model)
+    loaded = load_dit(folder)
+    assert isinstance(loaded, DiffusersDiT) and loaded.vae_path is None
+    assert loaded.config == model.config
+    assert load_dit(folder / "transformer").config == model.config
+    ref = sample_dit(DiffusersDiT(tr.eval(), model.config), labels, steps=STEPS, noise=noise)
+    dense = sample_dit(loaded, labels, steps=STEPS, noise=noise)
+    torch.testing.assert_close(dense, ref, atol=1e-6, rtol=1e-6)
+    with tts.accelerate(loaded, ("forward", "timestep")) as acc:  # the dense plan: the model's own forward
+        assert torch.equal(sample_dit(loaded, labels, steps=STEPS, noise=noise), dense)
+        assert acc.target.condition is not None  # a pruner reads block 0's condition memory
+    with tts.accelerate(loaded, ("timestep",), plan=tts.plans.every_n(3, "timestep")) as acc:
+        sample_dit(loaded, labels, steps=STEPS, noise=noise)
+        call = acc.summary().calls[-1]
+        assert call.decisions().shape == (STEPS, 2 * len(labels), 2 * DEPTH)  # CFG rows [cond; uncond]
+        assert acc.summary().sparsity_of(call) == pytest.approx(1 - 4 / STEPS)
+    with pytest.raises(FileNotFoundError, match="DiTPipeline folder"):
+        load_dit(tmp_path)
+
+
+def test_imagenet_script_samples_a_diffusers_folder_with_a_diffusers_cache(tmp_path):
+    import json
+
+    import numpy as np
+
+    from tts.adapters.dit import DiT, DiTConfig
+
+    sys.path.insert(0, str(REPO / "eval"))
+    import imagenet
+
+    pixel = randomize(DiT(DiTConfig(input_size=8, patch_size=2, in_channels=3, hidden_size=32, depth=2, num_heads=2,
+                                    num_classes=10, learn_sigma=False)), std=0.05).eval()
+    folder, _ = _pipeline_folder(tmp_path, pixel)
+    out = tmp_path / "s.npz"
+    res = imagenet.main(["--model", str(folder), "--method", "diffusers_taylorseer", "--fora-n", "2",
+                         "--taylor-order", "1", "--num-samples", "4", "--batch", "2", "--steps", "6", "--out", str(out),
+                         "--no-progress"])
+    arr = np.load(out)["arr_0"]
+    assert arr.shape == (4, 8, 8, 3) and arr.dtype == np.uint8
+    # full steps 0, 2, 4 of 6 (warm-up 1, then every 2nd from step 2)
+    assert res["sparsity"] == pytest.approx(0.5) and res["macs_ratio"] > 1.2
+    assert json.loads(out.with_suffix(".json").read_text())["plan"].startswith("diffusers TaylorSeer(interval=2")
+    latent, _, _ = _setup()
+    folder, _ = _pipeline_folder(tmp_path / "latent", latent)
+    with pytest.raises(ValueError, match="latent DiT"):  # 4 channels and no vae/ in the folder
+        imagenet.main(["--model", str(folder), "--num-samples", "2", "--steps", "2", "--out", str(out)])
