@@ -5,7 +5,7 @@
         [--sparsity 0.8] [--steps 50] [--cfg 1.5] [--num-samples 2000] [--out samples.npz] [--pruner PATH] \
         [--fora-n 5] [--ref REF] [--seed 0] [--batch 64]
 
-Methods (all in the tts engine; ``dense`` is the untouched model):
+Methods (all but ``diffusers_*`` in the tts engine; ``dense`` is the untouched model):
   dense    the model as is
   fora     ``tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(N, "timestep"))`` (FORA-style)
   taylorseer  FORA's interval with an order-``--taylor-order`` Taylor forecast of each reused branch
