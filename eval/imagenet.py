@@ -220,9 +220,10 @@ def check_args(args: argparse.Namespace) -> None:
         raise ValueError(f"--method {args.method} needs exactly one of --fresh-ratio and --sparsity")
     if args.fresh_ratio is not None and args.method not in ("toca", "duca"):
         raise ValueError("--fresh-ratio is only used by --method toca / duca")
-    if args.method == "diffusers_fbc" and (args.sparsity is None) == (args.fbc_threshold is None):
+    fbc_threshold = getattr(args, "fbc_threshold", None)
+    if args.method == "diffusers_fbc" and (args.sparsity is None) == (fbc_threshold is None):
         raise ValueError("--method diffusers_fbc needs exactly one of --fbc-threshold and --sparsity")
-    if args.fbc_threshold is not None and args.method != "diffusers_fbc":
+    if fbc_threshold is not None and args.method != "diffusers_fbc":
         raise ValueError("--fbc-threshold is only used by --method diffusers_fbc")
     if args.method == "diffusers_fbc" and args.sparsity is not None and args.calib_seed == args.seed:
         raise ValueError("--calib-seed must differ from --seed (never calibrate on the evaluation's noise)")
