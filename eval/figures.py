@@ -4,7 +4,8 @@
         --trajectories data/trajectories/lift.pt          # pruning masks per rollout iteration (paper Figs 12-16)
     python eval/figures.py similarity --task lift --checkpoint checkpoints/lift_dpt \
         --trajectories data/trajectories/lift.pt          # forward / timestep / rollout feature similarity (Fig 9)
-    python eval/figures.py data-efficiency --task lift    # success vs trajectories (Figs 10-11; scripts/data_efficiency.sh)
+    python eval/figures.py data-efficiency --task lift    # success vs trajectories (Figs 10-11; scripts/data_efficiency.sh,
+                                                          # scripts/pruner_data_efficiency.sh)
 
 Masks and similarities use held-out recorded episodes (index >= ``--first-episode``, past the
 pruner's training and validation sets) with the recorded noise seeds.
@@ -147,8 +148,10 @@ def _efficiency_rows(task: str) -> dict[str, list[tuple[int, float]]]:
         meta = r.get("pruner_metadata") or {}
         if "n_train_episodes" in meta:
             if abs(r["tts"]["sparsity_non_dense_calls"] - 0.93) < 0.02:  # the pruners run near 93%
-                series.setdefault("TTS pruners near rho=0.93 (training trajectories)", []).append(
-                    (meta["n_train_episodes"], r["success_rate"]))
+                pipeline = meta.get("config", {}).get("step_query") and "_n" in Path(meta.get("path", "")).name
+                label = ("TTS: search + step-query pruner on the same trajectories" if pipeline  # pruner_data_efficiency.sh
+                         else "TTS pruners near rho=0.93 (training trajectories)")
+                series.setdefault(label, []).append((meta["n_train_episodes"], r["success_rate"]))
             continue
         cmd = r.get("provenance", {}).get("command", "").split()
         plan = next((a.split(":", 1)[1] for a in cmd if a.startswith("file:")), None)
