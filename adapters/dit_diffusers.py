@@ -12,7 +12,7 @@ diffusers models, so this module
   :func:`~tts.adapters.dit.sample_dit` samples it with the same noise, scheduler and batched CFG as
   every tts method, and
 - applies one of diffusers' caches with per-call state, decision counts and MACs
-  (:class:`DiffusersCache`; :func:`apply_diffusers_cache`),
+  (:class:`DiffusersCache`),
 - loads a diffusers DiT from a local folder (a ``DiTPipeline`` folder such as facebook/DiT-XL-2-256,
   or its ``transformer`` folder) as a :class:`DiffusersDiT` (:func:`load_diffusers_dit`; what
   :func:`~tts.adapters.dit.load_dit` does for a directory), which ``tts.accelerate`` and
@@ -38,7 +38,7 @@ import torch.nn as nn
 from tts.adapters.dit import DiT, DiTConfig
 from tts.spec import Target, register_model_adapter
 
-__all__ = ["to_diffusers", "DiffusersDiT", "DiffusersCache", "apply_diffusers_cache", "load_diffusers_dit",
+__all__ = ["to_diffusers", "DiffusersDiT", "DiffusersCache", "load_diffusers_dit", "calibrate_fbc_threshold",
            "DIFFUSERS_CACHES"]
 
 DIFFUSERS_CACHES = ("fbc", "taylorseer")
@@ -338,10 +338,8 @@ class DiffusersCache:
             h.remove()
         self._handles.clear()
         self._registry.reset_stateful_hooks()
-        for name in list(self._registry._hook_order):
-            self._registry.remove_hook(name)
-        for block in self.model.transformer.modules():
-            reg = getattr(block, "_diffusers_hook", None)
+        for module in self.model.transformer.modules():  # the transformer itself and every hooked block
+            reg = getattr(module, "_diffusers_hook", None)
             if reg is not None:
                 for name in list(reg._hook_order):
                     reg.remove_hook(name, recurse=False)
@@ -349,12 +347,6 @@ class DiffusersCache:
         _set_cache_context(self.model.transformer, None)
         if self._start_call in self.model.on_call_start:
             self.model.on_call_start.remove(self._start_call)
-
-
-def apply_diffusers_cache(model: DiT, kind: str, **kwargs: Any) -> tuple[DiffusersDiT, DiffusersCache]:
-    """Convert ``model`` (:func:`to_diffusers`) and apply diffusers' cache ``kind`` to the copy."""
-    wrapped = DiffusersDiT.from_dit(model)
-    return wrapped, DiffusersCache(wrapped, kind, **kwargs)
 
 
 def calibrate_fbc_threshold(model: DiffusersDiT, target: float, labels: torch.Tensor, noise: torch.Tensor, *,

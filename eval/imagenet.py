@@ -183,7 +183,7 @@ def last_call_counts(acc: Any) -> dict[str, float]:
     if is_diffusers_cache(acc):
         call = acc.last_call()
         decisions = 2 * acc.depth * call.forwards
-        return dict(decisions=decisions, reused=round(call.sparsity(acc.depth) * decisions),
+        return dict(decisions=decisions, reused=decisions - call.computed,
                     macs_dense=call.macs_dense(), macs_realised=call.macs, macs_pruner=0.0)
     summary = acc.summary()
     call = summary.calls[-1]

@@ -7,12 +7,8 @@
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
 TASK=${TASK:-lift}
-SEEDS=${SEEDS:-100000 100050 100100}
 evaluate() {  # evaluate PRUNER RHO: 3 seeds, exact budget RHO
-  for seed in $SEEDS; do
-    python eval/robot.py --task "$TASK" --checkpoint checkpoints/${TASK}_dpt --method tts --pruner "$1" \
-        --sparsity "$2" --episodes 50 --seed "$seed" --resume
-  done
+  eval_seeds --task "$TASK" --checkpoint checkpoints/${TASK}_dpt --method tts --pruner "$1" --sparsity "$2"
 }
 for rho in ${RHOS:-0.9 0.95}; do
   evaluate checkpoints/pruners/${TASK}_tts_steps_0.93 "$rho"  # trained at 0.93, served at rho

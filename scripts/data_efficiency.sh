@@ -16,11 +16,6 @@ for n in ${NS:-1 2 4 8 16}; do
         --sparsity $RHO --objective output --episodes "$n" --calls 64 --batch 64 --shifts 1,2,4,8 --sweeps 40 \
         --threads 2 --out "$sched"
   fi
-  for seed in 100000 100050 100100; do
-    out=results/robot/${TASK}_static-${TASK}_steps_${RHO}_n${n}_${seed}.json
-    [ -n "${FORCE:-}" ] && rm -f "$out"
-    # --resume: skips a finished evaluation, continues one that was cut off
-    python eval/robot.py --task "$TASK" --checkpoint checkpoints/${TASK}_dpt --method static \
-        --plan "file:$sched" --episodes 50 --seed "$seed" --resume
-  done
+  [ -n "${FORCE:-}" ] && rm -f results/robot/${TASK}_static-${TASK}_steps_${RHO}_n${n}_*.json
+  eval_seeds --task "$TASK" --checkpoint checkpoints/${TASK}_dpt --method static --plan "file:$sched"
 done

@@ -17,3 +17,12 @@ fi
 # shellcheck disable=SC1091
 source .venv/bin/activate
 export HF_HUB_OFFLINE=1
+
+# eval_seeds ROBOT_ARGS...: eval/robot.py on 50 test episodes for each of $SEEDS (default: the 3
+# evaluation seeds); --resume skips finished runs and continues cut-off ones.
+eval_seeds() {
+  local seed
+  for seed in ${SEEDS:-100000 100050 100100}; do
+    python eval/robot.py "$@" --episodes 50 --seed "$seed" --resume
+  done
+}

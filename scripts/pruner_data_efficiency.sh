@@ -17,8 +17,5 @@ for n in ${NS:-1 2 4 8 16}; do
       --prior "$sched" --tie-branches --step-query --train-budget --prior-margin 1.0 --lr 2e-3 --val-mode budget \
       --n-train "$n" --n-val 2 --epochs 3 --batch "$(( n < 16 ? n : 16 ))" --paired --threads 2 \
       --run-dir "runs/${TASK}_tts_steps1q_${RHO}_n${n}" --resume
-  for seed in 100000 100050 100100; do
-    python eval/robot.py --task "$TASK" --checkpoint checkpoints/${TASK}_dpt --method tts --pruner "$pruner" \
-        --sparsity $RHO --episodes 50 --seed "$seed" --resume
-  done
+  eval_seeds --task "$TASK" --checkpoint checkpoints/${TASK}_dpt --method tts --pruner "$pruner" --sparsity $RHO
 done
