@@ -80,7 +80,7 @@ def main(argv=None) -> dict:
             acc.calls.clear()
             replay(policy, held_out[i:i + args.batch])
             calls += acc.summary().calls
-        prior = read_grid(Path(meta["prior"]), *calls[-1].decisions()[:, 0].shape)
+        prior = read_grid(Path(meta["prior"]), *calls[-1].decisions()[:, 0].shape, reuse=meta.get("prior_reuse"))
         res = agreement(calls, prior)
     res.update(task=args.task, pruner=str(args.pruner), prior=meta["prior"], sparsity=args.sparsity,
                episodes=f"{first}..{len(episodes) - 1}", trajectories=str(args.trajectories),

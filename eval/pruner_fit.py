@@ -47,6 +47,9 @@ def add_training_args(ap: argparse.ArgumentParser, *, sparsity: float, direction
     ap.add_argument("--prior", type=Path, default=None,  # a schedule JSON, or every_n:N (image pruner)
                     help="a searched static schedule (eval/search_static.py JSON) whose decisions become fixed "
                          "prior logits; the pruner (head zero-initialised) learns per-sample corrections")
+    ap.add_argument("--prior-reuse", default=None, choices=sorted(tts.plans.DIRECTIONS),
+                    help="map every reuse decision of --prior to this direction (single-direction variants "
+                         "of a searched schedule, e.g. its compute steps with rollout reuse in between)")
     ap.add_argument("--train-budget", action="store_true",
                     help="training gates take the exact-budget decision (top 1 - sparsity by compute "
                          "probability) in the forward: sparsity fixed, the pruner learns the ranking")
@@ -64,15 +67,22 @@ def add_training_args(ap: argparse.ArgumentParser, *, sparsity: float, direction
     ap.add_argument("--resume", action="store_true")
 
 
-def read_grid(path: Path, steps: Optional[int] = None, branches: Optional[int] = None) -> torch.Tensor:
+def read_grid(path: Path, steps: Optional[int] = None, branches: Optional[int] = None,
+              reuse: Optional[str] = None) -> torch.Tensor:
     """The [K, nb] decision grid of a searched schedule (eval/search_static.py JSON), or of a FORA
-    interval given as ``every_n:N`` (compute every branch at steps k % N == 0, timestep reuse else)."""
+    interval given as ``every_n:N`` (compute every branch at steps k % N == 0, timestep reuse else).
+    ``reuse``: replace every reuse decision by that direction (same compute steps)."""
     spec = str(path)
     if spec.startswith("every_n:"):
         if steps is None or branches is None:
             raise ValueError("an every_n:N prior needs the number of steps and branches")
-        return steps_grid(range(0, steps, int(spec.split(":", 1)[1])), steps, branches)
-    return tts.plans.from_tensor(json.loads(Path(path).read_text())["grid"]).decisions[0]
+        grid = steps_grid(range(0, steps, int(spec.split(":", 1)[1])), steps, branches)
+    else:
+        grid = tts.plans.from_tensor(json.loads(Path(path).read_text())["grid"]).decisions[0]
+    if reuse is not None:
+        (reuse,) = tts.plans.check_directions((reuse,))
+        grid = torch.where(grid == tts.plans.COMPUTE, grid, torch.full_like(grid, tts.plans.DIRECTIONS[reuse]))
+    return grid
 
 
 class RecordingPlan(PrunerPlan):

@@ -127,7 +127,7 @@ def main(argv=None) -> None:
         tie_branches=args.tie_branches, step_query=args.step_query,
         head_bias=[float(x) for x in args.head_bias.split(",")] if args.head_bias else None))
     if args.prior is not None:
-        pruner.set_prior(read_grid(args.prior), margin=args.prior_margin)
+        pruner.set_prior(read_grid(args.prior, reuse=args.prior_reuse), margin=args.prior_margin)
     train_plan = PrunerPlan(pruner, mode="ste")
 
     def train_epoch(opt, rng, noise_rng, epoch):

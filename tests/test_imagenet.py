@@ -256,3 +256,16 @@ def test_every_n_prior_grid():
     assert int(g.eq(0).sum()) == 3 * 4 and int(g.eq(2).sum()) == 9 * 4
     with pytest.raises(ValueError, match="number of steps"):
         read_grid(Path("every_n:5"))
+
+
+def test_prior_reuse_maps_every_reuse_decision_to_one_direction():
+    """--prior-reuse rollout: the same compute steps, rollout reuse in between (single-direction variant)."""
+    sys.path.insert(0, str(REPO / "eval"))
+    from pruner_fit import read_grid
+
+    base = read_grid(Path("every_n:4"), steps=8, branches=3)
+    g = read_grid(Path("every_n:4"), steps=8, branches=3, reuse="rollout")
+    assert g.eq(0).equal(base.eq(0))  # compute steps unchanged
+    assert set(g[base != 0].unique().tolist()) == {tts.plans.ROLLOUT}
+    with pytest.raises(ValueError, match="unknown direction"):
+        read_grid(Path("every_n:4"), steps=8, branches=3, reuse="sideways")

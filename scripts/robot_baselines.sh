@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# Matched-FLOPs rows of the robot table (issue 4), 3 test seeds x 50 episodes each, at 93% reuse
+# unless said otherwise:
+#   - single-direction static schedules: FORA-style interval (timestep), rollout, forward (uniform:)
+#   - single-direction TTS pruners: the step-query recipe of the table's TTS row (searched compute
+#     steps as prior, tied branches, exact-budget gates, paired) with timestep-only or rollout-only
+#     reuse (--prior-reuse maps the prior's reuse decisions to that direction)
+#   - Learning-to-Cache-style learned static router (one logit per step x branch, timestep reuse,
+#     exact-budget gates), served at exactly 93%
+#   - TTS at 95%: searched steps at 0.95 + the step-query pruner trained there
+# Resumable: finished searches, pruners and evaluations are skipped. TASK=lift (default) or can;
+# EPOCHS defaults to 3 (lift) / 1 (can), as for the table's TTS rows. Then: python eval/tables.py
+set -euo pipefail
+source "$(dirname "$0")/env.sh"
+TASK=${TASK:-lift}
+EPOCHS=${EPOCHS:-$([ "$TASK" = can ] && echo 1 || echo 3)}
+TRAJ=data/trajectories/${TASK}.pt
+CKPT=checkpoints/${TASK}_dpt
+NTRAIN=$([ "$TASK" = can ] && echo 89 || echo 96)   # trajectories before the 16 held out (can: 105 kept)
+evaluate() { eval_seeds --task "$TASK" --checkpoint "$CKPT" "$@"; }
+train() {  # train NAME ARGS...: a pruner on the task's trajectories, skipped when it exists
+  local name=$1; shift
+  [ -f "checkpoints/pruners/$name.json" ] || python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
+      --out "checkpoints/pruners/$name" --n-train "$NTRAIN" --n-val 16 --epochs "$EPOCHS" --paired --threads 2 \
+      --run-dir "runs/$name" --resume "$@"
+}
+steps_recipe() {  # the TTS row's step-query recipe from the searched steps at $1
+  echo --sparsity "$1" --prior "results/schedules/${TASK}_steps_$1.json" --tie-branches --step-query \
+       --train-budget --prior-margin 1.0 --lr 2e-3 --val-mode budget
+}
+
+for d in timestep rollout forward; do
+  evaluate --method static --plan "uniform:0.93:$d"
+done
+
+# shellcheck disable=SC2046
+train "${TASK}_tts_steps1q_timestep_0.93" $(steps_recipe 0.93) --directions timestep
+evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_timestep_0.93" --sparsity 0.93
+# shellcheck disable=SC2046
+train "${TASK}_tts_steps1q_rollout_0.93" $(steps_recipe 0.93) --directions rollout --prior-reuse rollout
+evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_rollout_0.93" --sparsity 0.93
+
+train "${TASK}_l2c_budget_0.93" --static --directions timestep --sparsity 0.93 --train-budget --lr 1e-2 --val-mode budget
+evaluate --method tts --pruner "checkpoints/pruners/${TASK}_l2c_budget_0.93" --sparsity 0.93
+
+sched=results/schedules/${TASK}_steps_0.95.json
+[ -f "$sched" ] || python eval/search_static.py --checkpoint "$CKPT" --trajectories "$TRAJ" --sparsity 0.95 \
+    --objective output --calls 64 --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$sched"
+# shellcheck disable=SC2046
+train "${TASK}_tts_steps1q_0.95" $(steps_recipe 0.95) --directions timestep,rollout
+evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_0.95" --sparsity 0.95
