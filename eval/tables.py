@@ -40,16 +40,35 @@ def summary_table(folder: Path) -> str:
         r = json.loads(path.read_text())
         if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
             runs.setdefault((r["task"], r["method"]), []).append(r)
-    rows = ["| task | method | success mean | std | evaluation seeds (first test seed of each run) | sparsity |",
-            "|---|---|---|---|---|---|"]
+    rows = ["| task | method | success mean | std | evaluation seeds (first test seed of each run) | sparsity "
+            "| vs dense on the same episodes: difference (95% CI), episodes only dense / only this method solved |",
+            "|---|---|---|---|---|---|---|"]
     for (task, method), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], -_mean([r["success_rate"] for r in kv[1]]))):
         sr = [r["success_rate"] for r in rs]
         info = rs[0].get("tts", {})
         sparsity = info.get("sparsity_non_dense_calls", info.get("sparsity_all_calls", 0))
         std = f"{(sum((x - _mean(sr)) ** 2 for x in sr) / (len(sr) - 1)) ** 0.5:.2f}" if len(sr) > 1 else "-"
         first = ", ".join(str(r["provenance"]["seeds"][0]) for r in rs)
-        rows.append(f"| {task} | {method} | {_mean(sr):.2f} | {std} | {len(rs)}: {first} | {sparsity:.3f} |")
+        paired = "-" if method == "dense" else paired_vs_dense(rs, runs.get((task, "dense"), []))
+        rows.append(f"| {task} | {method} | {_mean(sr):.2f} | {std} | {len(rs)}: {first} | {sparsity:.3f} | {paired} |")
     return "\n".join(rows) + "\n"
+
+
+def paired_vs_dense(runs: list[dict], dense: list[dict]) -> str:
+    """Success difference to dense on the test episodes both were run on (same env seed = same initial
+    state), with a normal-approximation 95% interval of the paired mean, and the discordant counts."""
+    def outcomes(rs):
+        return {e["seed"]: bool(e["success"]) for r in rs for e in r["episodes"]}
+
+    mine, ref = outcomes(runs), outcomes(dense)
+    common = sorted(set(mine) & set(ref))
+    if not common:
+        return "no common episodes"
+    diff = [int(mine[s]) - int(ref[s]) for s in common]
+    n, m = len(diff), _mean(diff)
+    half = 1.96 * ((sum((d - m) ** 2 for d in diff) / (n - 1)) ** 0.5 / n ** 0.5 if n > 1 else float("nan"))
+    return (f"{m:+.3f} ({m - half:+.3f}, {m + half:+.3f}) on {n}; "
+            f"{sum(d < 0 for d in diff)} / {sum(d > 0 for d in diff)}")
 
 
 def _mean(xs: list[float]) -> float:

@@ -128,7 +128,7 @@ def main(argv=None) -> None:
         head_bias=[float(x) for x in args.head_bias.split(",")] if args.head_bias else None))
     if args.prior is not None:
         pruner.set_prior(read_grid(args.prior, reuse=args.prior_reuse), margin=args.prior_margin)
-    train_plan = PrunerPlan(pruner, mode="ste")
+    train_plan = PrunerPlan(pruner, mode="ste", sparsity=args.sparsity if args.train_budget else None)
 
     def train_epoch(opt, rng, noise_rng, epoch):
         with tts.accelerate(policy, directions, plan=train_plan, forecast=args.forecast):

@@ -9,14 +9,15 @@
 #     exact-budget gates), served at exactly 93%
 #   - TTS at 95%: searched steps at 0.95 + the step-query pruner trained there
 # Resumable: finished searches, pruners and evaluations are skipped. TASK=lift (default) or can;
-# EPOCHS defaults to 3 (lift) / 1 (can), as for the table's TTS rows. Then: python eval/tables.py
+# EPOCHS defaults to 3 (lift) / 1 (can), as for the table's TTS rows; PARTS picks and orders the parts
+# (default: statics timestep rollout l2c rho95); SEEDS as in env.sh. Then: python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
 TASK=${TASK:-lift}
 EPOCHS=${EPOCHS:-$([ "$TASK" = can ] && echo 1 || echo 3)}
 TRAJ=data/trajectories/${TASK}.pt
 CKPT=checkpoints/${TASK}_dpt
-NTRAIN=$([ "$TASK" = can ] && echo 89 || echo 96)   # trajectories before the 16 held out (can: 105 kept)
+NTRAIN=$([ "$TASK" = can ] && echo 89 || echo 96)   # as the table's TTS rows (16 more held out for validation)
 evaluate() { eval_seeds --task "$TASK" --checkpoint "$CKPT" "$@"; }
 train() {  # train NAME ARGS...: a pruner on the task's trajectories, skipped when it exists
   local name=$1; shift
@@ -29,23 +30,34 @@ steps_recipe() {  # the TTS row's step-query recipe from the searched steps at $
        --train-budget --prior-margin 1.0 --lr 2e-3 --val-mode budget
 }
 
-for d in timestep rollout forward; do
-  evaluate --method static --plan "uniform:0.93:$d"
+part_statics() {
+  for d in timestep rollout forward; do
+    evaluate --method static --plan "uniform:0.93:$d"
+  done
+}
+part_timestep() {
+  # shellcheck disable=SC2046
+  train "${TASK}_tts_steps1q_timestep_0.93" $(steps_recipe 0.93) --directions timestep
+  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_timestep_0.93" --sparsity 0.93
+}
+part_rollout() {
+  # shellcheck disable=SC2046
+  train "${TASK}_tts_steps1q_rollout_0.93" $(steps_recipe 0.93) --directions rollout --prior-reuse rollout
+  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_rollout_0.93" --sparsity 0.93
+}
+part_l2c() {
+  train "${TASK}_l2c_budget_0.93" --static --directions timestep --sparsity 0.93 --train-budget --lr 1e-2 --val-mode budget
+  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_l2c_budget_0.93" --sparsity 0.93
+}
+part_rho95() {
+  local sched=results/schedules/${TASK}_steps_0.95.json
+  [ -f "$sched" ] || python eval/search_static.py --checkpoint "$CKPT" --trajectories "$TRAJ" --sparsity 0.95 \
+      --objective output --calls 64 --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$sched"
+  # shellcheck disable=SC2046
+  train "${TASK}_tts_steps1q_0.95" $(steps_recipe 0.95) --directions timestep,rollout
+  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_0.95" --sparsity 0.95
+}
+
+for part in ${PARTS:-statics timestep rollout l2c rho95}; do
+  "part_$part"
 done
-
-# shellcheck disable=SC2046
-train "${TASK}_tts_steps1q_timestep_0.93" $(steps_recipe 0.93) --directions timestep
-evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_timestep_0.93" --sparsity 0.93
-# shellcheck disable=SC2046
-train "${TASK}_tts_steps1q_rollout_0.93" $(steps_recipe 0.93) --directions rollout --prior-reuse rollout
-evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_rollout_0.93" --sparsity 0.93
-
-train "${TASK}_l2c_budget_0.93" --static --directions timestep --sparsity 0.93 --train-budget --lr 1e-2 --val-mode budget
-evaluate --method tts --pruner "checkpoints/pruners/${TASK}_l2c_budget_0.93" --sparsity 0.93
-
-sched=results/schedules/${TASK}_steps_0.95.json
-[ -f "$sched" ] || python eval/search_static.py --checkpoint "$CKPT" --trajectories "$TRAJ" --sparsity 0.95 \
-    --objective output --calls 64 --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$sched"
-# shellcheck disable=SC2046
-train "${TASK}_tts_steps1q_0.95" $(steps_recipe 0.95) --directions timestep,rollout
-evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_0.95" --sparsity 0.95

@@ -315,6 +315,40 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
                                "--trajectories", str(tmp_path / "traj.pt")])
 
 
+def test_train_budget_makes_the_training_forward_take_exactly_the_budget(tmp_path):
+    """--train-budget: the straight-through forward is the exact-budget decision, so a static router
+    that starts at "compute everything" trains at the target sparsity from its first step (without
+    the flag its argmax forward computed everything and the option was silently ignored)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
+    import train_pruner
+    from collect_trajectories import save
+    from tts.adapters.dp_policy import save_policy
+
+    pol = small_policy(num_steps=6)
+    save_policy(pol, tmp_path / "policy", dtype=torch.float32)
+    episodes = []
+    for e in range(4):
+        obs = np.stack([np.concatenate([obs_batch(1, 10 * e + r)[k][0] for k in obs_batch(1)], -1) for r in range(3)])
+        preds = np.stack([pol.predict_action(train_pruner.obs_dict(pol, torch.as_tensor(o[None])),
+                                             torch.Generator().manual_seed(100 * e + r))["action_pred"][0].numpy()
+                          for r, o in enumerate(obs)])
+        episodes.append({"seed": e, "success": True, "obs": obs, "action_pred": preds, "action": preds[:, 1:9],
+                         "noise_seed": 100 * e + np.arange(3)})
+    save(tmp_path / "traj.pt", episodes, {"command": "test"})
+    base = ["--trajectories", str(tmp_path / "traj.pt"), "--checkpoint", str(tmp_path / "policy"), "--sparsity", "0.5",
+            "--epochs", "1", "--batch", "2", "--n-train", "2", "--n-val", "2", "--lr", "1e-4", "--paired", "--static",
+            "--directions", "timestep", "--val-mode", "budget"]
+    train_pruner.main(base + ["--out", str(tmp_path / "plain")])
+    train_pruner.main(base + ["--out", str(tmp_path / "budget"), "--train-budget"])
+    plain = load_pruner(tmp_path / "plain").metadata["history"][-1]
+    budget = load_pruner(tmp_path / "budget").metadata["history"][-1]
+    assert plain["train_sparsity"] == pytest.approx(0.0) and plain["train_l1"] == pytest.approx(0.0, abs=1e-6)
+    assert budget["train_sparsity"] == pytest.approx(0.5, abs=0.1) and budget["train_l1"] > 0
+
+
 def test_pruner_agreement_counts_calls_and_decisions_equal_to_the_prior():
     import sys
     from pathlib import Path
