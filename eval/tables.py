@@ -67,7 +67,8 @@ def paired_vs_dense(runs: list[dict], dense: list[dict]) -> str:
     diff = [int(mine[s]) - int(ref[s]) for s in common]
     n, m = len(diff), _mean(diff)
     half = 1.96 * ((sum((d - m) ** 2 for d in diff) / (n - 1)) ** 0.5 / n ** 0.5 if n > 1 else float("nan"))
-    return (f"{m:+.3f} ({m - half:+.3f}, {m + half:+.3f}) on {n}; "
+    lo, hi = max(m - half, -1.0), min(m + half, 1.0)  # a difference of success rates lies in [-1, 1]
+    return (f"{m:+.3f} ({lo:+.3f}, {hi:+.3f}) on {n}; "
             f"{sum(d < 0 for d in diff)} / {sum(d > 0 for d in diff)}")
 
 

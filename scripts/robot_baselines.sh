@@ -8,9 +8,11 @@
 #   - Learning-to-Cache-style learned static router (one logit per step x branch, timestep reuse,
 #     exact-budget gates), served at exactly 93%
 #   - TTS at 95%: searched steps at 0.95 + the step-query pruner trained there
+#   - bste: the TTS row's step-query pruner retrained with exact-budget straight-through gates (before
+#     commit 65c354a eval/train_pruner.py ignored --train-budget: argmax gates in training)
 # Resumable: finished searches, pruners and evaluations are skipped. TASK=lift (default) or can;
 # EPOCHS defaults to 3 (lift) / 1 (can), as for the table's TTS rows; PARTS picks and orders the parts
-# (default: statics timestep rollout l2c rho95); SEEDS as in env.sh. Then: python eval/tables.py
+# (default: statics timestep rollout bste l2c rho95); SEEDS as in env.sh. Then: python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
 TASK=${TASK:-lift}
@@ -45,6 +47,11 @@ part_rollout() {
   train "${TASK}_tts_steps1q_rollout_0.93" $(steps_recipe 0.93) --directions rollout --prior-reuse rollout
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_rollout_0.93" --sparsity 0.93
 }
+part_bste() {  # the TTS row's recipe retrained since the fix that makes --train-budget effective
+  # shellcheck disable=SC2046
+  train "${TASK}_tts_steps1q_bste_0.93" $(steps_recipe 0.93) --directions timestep,rollout
+  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_bste_0.93" --sparsity 0.93
+}
 part_l2c() {
   train "${TASK}_l2c_budget_0.93" --static --directions timestep --sparsity 0.93 --train-budget --lr 1e-2 --val-mode budget
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_l2c_budget_0.93" --sparsity 0.93
@@ -58,6 +65,6 @@ part_rho95() {
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_0.95" --sparsity 0.95
 }
 
-for part in ${PARTS:-statics timestep rollout l2c rho95}; do
+for part in ${PARTS:-statics timestep rollout bste l2c rho95}; do
   "part_$part"
 done
