@@ -74,7 +74,8 @@ def main(argv=None) -> dict:
                                        hidden=args.hidden, steps=args.steps, prior=args.prior is not None,
                                        tie_branches=args.tie_branches, step_query=args.step_query))
     if args.prior is not None:
-        pruner.set_prior(read_grid(args.prior, steps=args.steps, branches=2 * cfg.depth, reuse=args.prior_reuse), margin=args.prior_margin)
+        grid = read_grid(args.prior, steps=args.steps, branches=2 * cfg.depth, reuse=args.prior_reuse)
+        pruner.set_prior(grid, margin=args.prior_margin)
     train_plan = PrunerPlan(pruner, mode="ste", sparsity=args.sparsity if args.train_budget else None)
 
     def run(plan, idx, opt=None) -> dict:

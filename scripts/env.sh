@@ -26,3 +26,10 @@ eval_seeds() {
     python eval/robot.py "$@" --episodes 50 --seed "$seed" --resume
   done
 }
+
+# steps_recipe RHO SCHEDULE: eval/train_pruner.py flags of the table's step-level TTS pruner (searched
+# compute steps as prior, one decoder query per step, exact-budget gates, validation at the budget).
+steps_recipe() {
+  echo --sparsity "$1" --prior "$2" --tie-branches --step-query --train-budget --prior-margin 1.0 --lr 2e-3 \
+       --val-mode budget
+}

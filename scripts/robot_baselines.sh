@@ -27,10 +27,7 @@ train() {  # train NAME ARGS...: a pruner on the task's trajectories, skipped wh
       --out "checkpoints/pruners/$name" --n-train "$NTRAIN" --n-val 16 --epochs "$EPOCHS" --paired --threads 2 \
       --run-dir "runs/$name" --resume "$@"
 }
-steps_recipe() {  # the TTS row's step-query recipe from the searched steps at $1
-  echo --sparsity "$1" --prior "results/schedules/${TASK}_steps_$1.json" --tie-branches --step-query \
-       --train-budget --prior-margin 1.0 --lr 2e-3 --val-mode budget
-}
+recipe() { steps_recipe "$1" "results/schedules/${TASK}_steps_$1.json"; }  # env.sh, searched steps at $1
 
 part_statics() {
   for d in timestep rollout forward; do
@@ -39,17 +36,17 @@ part_statics() {
 }
 part_timestep() {
   # shellcheck disable=SC2046
-  train "${TASK}_tts_steps1q_timestep_0.93" $(steps_recipe 0.93) --directions timestep
+  train "${TASK}_tts_steps1q_timestep_0.93" $(recipe 0.93) --directions timestep
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_timestep_0.93" --sparsity 0.93
 }
 part_rollout() {
   # shellcheck disable=SC2046
-  train "${TASK}_tts_steps1q_rollout_0.93" $(steps_recipe 0.93) --directions rollout --prior-reuse rollout
+  train "${TASK}_tts_steps1q_rollout_0.93" $(recipe 0.93) --directions rollout --prior-reuse rollout
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_rollout_0.93" --sparsity 0.93
 }
 part_bste() {  # the TTS row's recipe retrained since the fix that makes --train-budget effective
   # shellcheck disable=SC2046
-  train "${TASK}_tts_steps1q_bste_0.93" $(steps_recipe 0.93) --directions timestep,rollout
+  train "${TASK}_tts_steps1q_bste_0.93" $(recipe 0.93) --directions timestep,rollout
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_bste_0.93" --sparsity 0.93
 }
 part_l2c() {
@@ -61,7 +58,7 @@ part_rho95() {
   [ -f "$sched" ] || python eval/search_static.py --checkpoint "$CKPT" --trajectories "$TRAJ" --sparsity 0.95 \
       --objective output --calls 64 --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$sched"
   # shellcheck disable=SC2046
-  train "${TASK}_tts_steps1q_0.95" $(steps_recipe 0.95) --directions timestep,rollout
+  train "${TASK}_tts_steps1q_0.95" $(recipe 0.95) --directions timestep,rollout
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_0.95" --sparsity 0.95
 }
 
