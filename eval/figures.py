@@ -16,6 +16,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
@@ -136,6 +137,15 @@ def similarity(args) -> Path:
     return out
 
 
+def _prior_calibration(command: str) -> Optional[int]:
+    """Calibration trajectories of the schedule a pruner was started from (its ``--prior``), if any."""
+    cmd = command.split()
+    if "--prior" not in cmd or cmd.index("--prior") + 1 >= len(cmd):
+        return None
+    path = REPO / cmd[cmd.index("--prior") + 1]
+    return json.loads(path.read_text()).get("calibration_episodes") if path.exists() else None
+
+
 def _efficiency_rows(task: str) -> dict[str, list[tuple[int, float]]]:
     """(training or calibration trajectories, success) per series, from finished result JSONs:
     TTS pruners by their ``n_train_episodes``; searched whole-step schedules (``--plan file:``) by
@@ -148,7 +158,7 @@ def _efficiency_rows(task: str) -> dict[str, list[tuple[int, float]]]:
         meta = r.get("pruner_metadata") or {}
         if "n_train_episodes" in meta:
             if abs(r["tts"]["sparsity_non_dense_calls"] - 0.93) < 0.01:  # the pruners run at 93%
-                pipeline = meta.get("config", {}).get("step_query") and "_n" in Path(meta.get("path", "")).name
+                pipeline = meta["n_train_episodes"] == _prior_calibration(meta.get("command", ""))
                 label = ("TTS: search + step-query pruner on the same trajectories" if pipeline  # pruner_data_efficiency.sh
                          else "TTS pruners near rho=0.93 (training trajectories)")
                 series.setdefault(label, []).append((meta["n_train_episodes"], r["success_rate"]))

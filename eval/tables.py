@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -41,7 +42,7 @@ def summary_table(folder: Path) -> str:
         if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
             runs.setdefault((r["task"], r["method"]), []).append(r)
     rows = ["| task | method | success mean | std | evaluation seeds (first test seed of each run) | sparsity "
-            "| vs dense on the same episodes: difference (95% CI), episodes only dense / only this method solved |",
+            "| vs dense on the same episodes: difference (95% CI), episodes only dense / only this method solved, sign test |",
             "|---|---|---|---|---|---|---|"]
     for (task, method), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], -_mean([r["success_rate"] for r in kv[1]]))):
         sr = [r["success_rate"] for r in rs]
@@ -56,7 +57,8 @@ def summary_table(folder: Path) -> str:
 
 def paired_vs_dense(runs: list[dict], dense: list[dict]) -> str:
     """Success difference to dense on the test episodes both were run on (same env seed = same initial
-    state), with a normal-approximation 95% interval of the paired mean, and the discordant counts."""
+    state): the paired difference with Newcombe's score interval (95%), the discordant counts (only
+    dense / only this method solved) and the exact two-sided sign-test p-value on those counts."""
     def outcomes(rs):
         return {e["seed"]: bool(e["success"]) for r in rs for e in r["episodes"]}
 
@@ -64,12 +66,45 @@ def paired_vs_dense(runs: list[dict], dense: list[dict]) -> str:
     common = sorted(set(mine) & set(ref))
     if not common:
         return "no common episodes"
-    diff = [int(mine[s]) - int(ref[s]) for s in common]
-    n, m = len(diff), _mean(diff)
-    half = 1.96 * ((sum((d - m) ** 2 for d in diff) / (n - 1)) ** 0.5 / n ** 0.5 if n > 1 else float("nan"))
-    lo, hi = max(m - half, -1.0), min(m + half, 1.0)  # a difference of success rates lies in [-1, 1]
-    return (f"{m:+.3f} ({lo:+.3f}, {hi:+.3f}) on {n}; "
-            f"{sum(d < 0 for d in diff)} / {sum(d > 0 for d in diff)}")
+    both = sum(mine[s] and ref[s] for s in common)
+    only_mine = sum(mine[s] and not ref[s] for s in common)
+    only_ref = sum(ref[s] and not mine[s] for s in common)
+    n = len(common)
+    diff, lo, hi = newcombe_paired(both, only_mine, only_ref, n - both - only_mine - only_ref)
+    return (f"{diff:+.3f} ({lo:+.3f}, {hi:+.3f}) on {n}; {only_ref} / {only_mine}, "
+            f"p = {sign_test_p(only_ref, only_mine):.2g}")
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion k/n."""
+    p, z2 = k / n, z * z
+    centre, half = (p + z2 / (2 * n)) / (1 + z2 / n), z * ((p * (1 - p) + z2 / (4 * n)) / n) ** 0.5 / (1 + z2 / n)
+    return max(centre - half, 0.0), min(centre + half, 1.0)
+
+
+def newcombe_paired(a: int, b: int, c: int, d: int, z: float = 1.96) -> tuple[float, float, float]:
+    """Difference p1 - p2 of two paired proportions and its confidence interval by Newcombe's (1998,
+    Stat. Med. 17:2635) method 10: the Wilson intervals of both margins combined with the
+    (continuity-corrected) phi correlation of the 2x2 table. a: both succeed, b: only the first, c: only the second, d: neither."""
+    n = a + b + c + d
+    p1, p2 = (a + b) / n, (a + c) / n
+    (l1, u1), (l2, u2) = wilson(a + b, n, z), wilson(a + c, n, z)
+    margins = (a + b) * (c + d) * (a + c) * (b + d)
+    cross = a * d - b * c
+    cross = max(cross - n / 2, 0.0) if cross > 0 else cross  # Newcombe's continuity correction of phi
+    phi = cross / margins ** 0.5 if margins else 0.0
+    lo = (p1 - p2) - max((p1 - l1) ** 2 - 2 * phi * (p1 - l1) * (u2 - p2) + (u2 - p2) ** 2, 0.0) ** 0.5
+    hi = (p1 - p2) + max((u1 - p1) ** 2 - 2 * phi * (u1 - p1) * (p2 - l2) + (p2 - l2) ** 2, 0.0) ** 0.5
+    return p1 - p2, max(lo, -1.0), min(hi, 1.0)
+
+
+def sign_test_p(b: int, c: int) -> float:
+    """Exact two-sided sign test (McNemar's exact test) of b vs c discordant pairs."""
+    m = b + c
+    if m == 0:
+        return 1.0
+    tail = sum(math.comb(m, k) for k in range(min(b, c) + 1)) / 2 ** m
+    return min(1.0, 2 * tail)
 
 
 def _mean(xs: list[float]) -> float:

@@ -1,4 +1,4 @@
-"""eval/tables.py: the paired comparison with dense on the same test episodes."""
+"""eval/tables.py and eval/figures.py: the paired comparison with dense (Newcombe interval, sign test), the data-efficiency series."""
 import sys
 from pathlib import Path
 
@@ -7,7 +7,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "eval"))
 
-from tables import paired_vs_dense  # noqa: E402
+from tables import newcombe_paired, paired_vs_dense, sign_test_p  # noqa: E402
 
 
 def run(outcomes: dict[int, bool]) -> dict:
@@ -18,14 +18,42 @@ def test_paired_difference_counts_discordant_episodes_on_common_seeds_only():
     dense = [run({1: True, 2: True, 3: False, 4: True})]
     mine = [run({1: True, 2: False}), run({3: True, 4: False, 99: True})]  # seed 99: no dense episode
     text = paired_vs_dense(mine, dense)
-    assert text.startswith("-0.250 (") and text.endswith("on 4; 2 / 1")
+    assert text.startswith("-0.250 (") and text.endswith("on 4; 2 / 1, p = 1")
     lo, hi = (float(x) for x in text.split("(")[1].split(")")[0].split(", "))
     assert lo < -0.25 < hi
 
 
-def test_identical_outcomes_give_a_zero_width_interval_and_no_overlap_is_reported():
+def test_identical_outcomes_give_a_symmetric_interval_that_narrows_with_episodes_and_no_overlap_is_reported():
     dense = [run({1: True, 2: False})]
-    assert paired_vs_dense([run({1: True, 2: False})], dense) == "+0.000 (+0.000, +0.000) on 2; 0 / 0"
+    assert paired_vs_dense([run({1: True, 2: False})], dense) == "+0.000 (-0.573, +0.573) on 2; 0 / 0, p = 1"
+    # all 150 solved by both: not a zero-width interval (the normal approximation's), about +-0.025
+    diff, lo, hi = newcombe_paired(150, 0, 0, 0)
+    assert diff == 0 and lo == -hi and 0.02 < hi < 0.03
     assert paired_vs_dense([run({5: True})], dense) == "no common episodes"
     with pytest.raises(KeyError):
         paired_vs_dense([{"episodes": [{"seed": 1}]}], dense)
+
+
+def test_newcombe_interval_moves_with_the_discordant_pairs_and_stays_in_range():
+    # the Can TTS row: 262 both, 7 only TTS, 17 only dense, 14 neither
+    diff, lo, hi = newcombe_paired(262, 7, 17, 14)
+    assert abs(diff + 10 / 300) < 1e-12 and -0.07 < lo < diff < hi < 0
+    _, lo2, hi2 = newcombe_paired(262, 9, 15, 14)  # fewer losses: the interval moves up and covers 0
+    assert lo2 > lo and hi2 > 0
+    assert newcombe_paired(0, 0, 150, 0)[:2] == (-1.0, -1.0)  # never solved vs always solved
+    assert newcombe_paired(0, 150, 0, 0)[2] == 1.0
+
+
+def test_sign_test_is_exact_two_sided_binomial():
+    assert sign_test_p(0, 0) == 1.0 and sign_test_p(1, 0) == 1.0
+    assert sign_test_p(5, 0) == sign_test_p(0, 5) == 2 / 32
+    assert abs(sign_test_p(17, 7) - 0.0639) < 1e-4  # 2 * P(X <= 7), X ~ Bin(24, 1/2)
+
+
+def test_data_efficiency_pipeline_is_told_apart_by_the_priors_calibration_trajectories():
+    from figures import _prior_calibration
+    cmd = "python eval/train_pruner.py --prior results/schedules/lift_steps_0.93_n4.json --n-train 4"
+    assert _prior_calibration(cmd) == 4
+    assert _prior_calibration(cmd.replace("_n4", "")) == 32  # the table's schedule: 32 trajectories
+    assert _prior_calibration("python eval/train_pruner.py --n-train 4") is None
+    assert _prior_calibration("python eval/train_pruner.py --prior") is None
