@@ -6,22 +6,14 @@
 # ~45 min for Lift on 2 CPU cores. Then: python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
-TASK=${TASK:-lift}
-evaluate() {  # evaluate PRUNER RHO: 3 seeds, exact budget RHO
-  eval_seeds --task "$TASK" --checkpoint checkpoints/${TASK}_dpt --method tts --pruner "$1" --sparsity "$2"
-}
-for rho in ${RHOS:-0.9 0.95}; do
-  evaluate checkpoints/pruners/${TASK}_tts_steps_0.93 "$rho"  # trained at 0.93, served at rho
+robot_task "${TASK:-lift}"
+for rho in ${RHOS:-0.9 0.95}; do  # trained at 0.93, served at rho
+  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps_0.93" --sparsity "$rho"
 done
-for rho in ${RHOS:-0.9 0.95}; do
+for rho in ${RHOS:-0.9 0.95}; do  # trained and served at rho
   sched=results/schedules/${TASK}_steps_${rho}.json
-  [ -f "$sched" ] || python eval/search_static.py --checkpoint checkpoints/${TASK}_dpt \
-      --trajectories data/trajectories/${TASK}.pt --sparsity "$rho" --objective output --calls 64 --batch 64 \
-      --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$sched"
-  pruner=checkpoints/pruners/${TASK}_tts_steps_${rho}
-  [ -f "$pruner.json" ] || python eval/train_pruner.py --trajectories data/trajectories/${TASK}.pt \
-      --checkpoint checkpoints/${TASK}_dpt --out "$pruner" --sparsity "$rho" --directions timestep,rollout \
-      --prior "$sched" --tie-branches --train-budget --prior-margin 1.0 --lr 2e-3 --val-mode budget \
-      --n-train 96 --n-val 16 --epochs 3 --paired --threads 2 --run-dir "runs/${TASK}_tts_steps_${rho}" --resume
-  evaluate "$pruner" "$rho"  # trained and served at rho
+  search_steps "$sched" "$rho"
+  train_named "${TASK}_tts_steps_${rho}" --sparsity "$rho" --directions timestep,rollout --prior "$sched" \
+      --tie-branches --train-budget --prior-margin 1.0 --lr 2e-3 --val-mode budget
+  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps_${rho}" --sparsity "$rho"
 done

@@ -33,3 +33,34 @@ steps_recipe() {
   echo --sparsity "$1" --prior "$2" --tie-branches --step-query --train-budget --prior-margin 1.0 --lr 2e-3 \
        --val-mode budget
 }
+
+# robot_task TASK: the per-task paths and training sizes the robot scripts share (TASK, CKPT, TRAJ,
+# NTRAIN: the table's pruners train on 96 Lift / 89 Can trajectories with the next 16 held out for
+# validation, EPOCHS: 3 Lift / 1 Can unless set).
+robot_task() {
+  TASK=$1
+  CKPT=checkpoints/${TASK}_dpt
+  TRAJ=data/trajectories/${TASK}.pt
+  NTRAIN=$([ "$TASK" = can ] && echo 89 || echo 96)
+  EPOCHS=${EPOCHS:-$([ "$TASK" = can ] && echo 1 || echo 3)}
+}
+
+# evaluate ROBOT_ARGS...: eval_seeds on the current robot_task's policy.
+evaluate() { eval_seeds --task "$TASK" --checkpoint "$CKPT" "$@"; }
+
+# train_named NAME ARGS...: eval/train_pruner.py on the robot_task's trajectories (paired, resumable;
+# skipped when checkpoints/pruners/NAME exists); NTRAIN / NVAL (default 16) / EPOCHS set the sizes.
+train_named() {
+  local name=$1; shift
+  [ -f "checkpoints/pruners/$name.json" ] || python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
+      --out "checkpoints/pruners/$name" --n-train "$NTRAIN" --n-val "${NVAL:-16}" --epochs "$EPOCHS" --paired --threads 2 \
+      --run-dir "runs/$name" --resume "$@"
+}
+
+# search_steps OUT RHO [SEARCH_ARGS...]: whole compute steps placed by output L1 (eval/search_static.py)
+# at sparsity RHO, written to OUT unless it exists.
+search_steps() {
+  local out=$1 rho=$2; shift 2
+  [ -f "$out" ] || python eval/search_static.py --checkpoint "$CKPT" --trajectories "$TRAJ" --sparsity "$rho" \
+      --objective output --calls 64 --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$out" "$@"
+}

@@ -10,23 +10,13 @@
 #   - TTS at 95%: searched steps at 0.95 + the step-query pruner trained there
 #   - bste: the TTS row's step-query pruner retrained with exact-budget straight-through gates (before
 #     commit 65c354a eval/train_pruner.py ignored --train-budget: argmax gates in training)
+#   - fewer sampling steps: DDIM-10 and DDIM-16 (DDIM-7, the matched-FLOPs one: scripts/robot_table.sh)
 # Resumable: finished searches, pruners and evaluations are skipped. TASK=lift (default) or can;
 # EPOCHS defaults to 3 (lift) / 1 (can), as for the table's TTS rows; PARTS picks and orders the parts
-# (default: statics timestep rollout bste l2c rho95); SEEDS as in env.sh. Then: python eval/tables.py
+# (default: statics timestep rollout bste l2c rho95 ddim); SEEDS as in env.sh. Then: python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
-TASK=${TASK:-lift}
-EPOCHS=${EPOCHS:-$([ "$TASK" = can ] && echo 1 || echo 3)}
-TRAJ=data/trajectories/${TASK}.pt
-CKPT=checkpoints/${TASK}_dpt
-NTRAIN=$([ "$TASK" = can ] && echo 89 || echo 96)   # as the table's TTS rows (16 more held out for validation)
-evaluate() { eval_seeds --task "$TASK" --checkpoint "$CKPT" "$@"; }
-train() {  # train NAME ARGS...: a pruner on the task's trajectories, skipped when it exists
-  local name=$1; shift
-  [ -f "checkpoints/pruners/$name.json" ] || python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
-      --out "checkpoints/pruners/$name" --n-train "$NTRAIN" --n-val 16 --epochs "$EPOCHS" --paired --threads 2 \
-      --run-dir "runs/$name" --resume "$@"
-}
+robot_task "${TASK:-lift}"
 recipe() { steps_recipe "$1" "results/schedules/${TASK}_steps_$1.json"; }  # env.sh, searched steps at $1
 
 part_statics() {
@@ -36,32 +26,36 @@ part_statics() {
 }
 part_timestep() {
   # shellcheck disable=SC2046
-  train "${TASK}_tts_steps1q_timestep_0.93" $(recipe 0.93) --directions timestep
+  train_named "${TASK}_tts_steps1q_timestep_0.93" $(recipe 0.93) --directions timestep
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_timestep_0.93" --sparsity 0.93
 }
 part_rollout() {
   # shellcheck disable=SC2046
-  train "${TASK}_tts_steps1q_rollout_0.93" $(recipe 0.93) --directions rollout --prior-reuse rollout
+  train_named "${TASK}_tts_steps1q_rollout_0.93" $(recipe 0.93) --directions rollout --prior-reuse rollout
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_rollout_0.93" --sparsity 0.93
 }
 part_bste() {  # the TTS row's recipe retrained since the fix that makes --train-budget effective
   # shellcheck disable=SC2046
-  train "${TASK}_tts_steps1q_bste_0.93" $(recipe 0.93) --directions timestep,rollout
+  train_named "${TASK}_tts_steps1q_bste_0.93" $(recipe 0.93) --directions timestep,rollout
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_bste_0.93" --sparsity 0.93
 }
 part_l2c() {
-  train "${TASK}_l2c_budget_0.93" --static --directions timestep --sparsity 0.93 --train-budget --lr 1e-2 --val-mode budget
+  train_named "${TASK}_l2c_budget_0.93" --static --directions timestep --sparsity 0.93 --train-budget --lr 1e-2 \
+      --val-mode budget
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_l2c_budget_0.93" --sparsity 0.93
 }
 part_rho95() {
-  local sched=results/schedules/${TASK}_steps_0.95.json
-  [ -f "$sched" ] || python eval/search_static.py --checkpoint "$CKPT" --trajectories "$TRAJ" --sparsity 0.95 \
-      --objective output --calls 64 --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$sched"
+  search_steps "results/schedules/${TASK}_steps_0.95.json" 0.95
   # shellcheck disable=SC2046
-  train "${TASK}_tts_steps1q_0.95" $(recipe 0.95) --directions timestep,rollout
+  train_named "${TASK}_tts_steps1q_0.95" $(recipe 0.95) --directions timestep,rollout
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_0.95" --sparsity 0.95
 }
+part_ddim() {
+  for steps in 10 16; do
+    evaluate --method ddim --steps "$steps"
+  done
+}
 
-for part in ${PARTS:-statics timestep rollout bste l2c rho95}; do
+for part in ${PARTS:-statics timestep rollout bste l2c rho95 ddim}; do
   "part_$part"
 done
