@@ -188,6 +188,26 @@ def test_rollout_cache_persists_and_resets():
     assert acc.summary().calls[-1].dense
 
 
+def test_enabling_rollout_changes_only_the_first_call_when_the_plan_never_picks_it():
+    """The robot table's omni row vs its timestep-only row: with decisions that never choose rollout,
+    turning the rollout direction on only makes each episode's first call dense; every later call is
+    bit-identical to the same plan without that direction."""
+    plan = tts.plans.from_tensor(torch.tensor(
+        [[COMPUTE] * 6] + [[TIMESTEP, COMPUTE, TIMESTEP, TIMESTEP, COMPUTE, TIMESTEP]] * 3))
+    torch.manual_seed(1)
+    xs = [torch.randn(1, 4, 8) for _ in range(3 * 4)]
+    outs, dense = {}, {}
+    for dirs in (("timestep",), ("timestep", "rollout")):
+        model, log, spec = make()
+        with tts.accelerate(model, dirs, plan=plan, blocks={"blocks.*": spec}) as acc, torch.no_grad():
+            outs[dirs] = [model(xs[4 * c + k], torch.tensor(4 - k), torch.arange(1)) for c in range(3) for k in range(4)]
+            dense[dirs] = [c.dense for c in acc.summary().calls]
+    assert dense == {("timestep",): [False] * 3, ("timestep", "rollout"): [True, False, False]}
+    t_only, omni = outs[("timestep",)], outs[("timestep", "rollout")]
+    assert not all(torch.equal(a, b) for a, b in zip(t_only[:4], omni[:4]))  # dense first call
+    assert all(torch.equal(a, b) for a, b in zip(t_only[4:], omni[4:]))
+
+
 def test_missing_rollout_entries_fall_back_to_compute():
     """A call longer than the previous one has no rollout entries for its extra steps."""
     model, log, spec = make()
