@@ -3,8 +3,8 @@
 # checkpoint (checkpoints/<task>_dpt): dense-policy trajectories (collected if missing), dense
 # DDPM-100, DDIM-7 (matched FLOPs), the BAC-style per-branch schedule and the whole-step schedule
 # searched offline, the TTS step-query pruner started from the searched steps (exact budget, 93%),
-# its decisions vs its prior, latency at batch 1 and 28 against dense in one process, the figures
-# (docs/<task>_*.png), then the tables. Every step is resumable and skipped when its output exists.
+# its decisions vs its prior, the per-call oracle headroom around the searched steps, latency at
+# batch 1 and 28 against dense in one process, the figures (docs/<task>_*.png), then the tables. Every step is resumable and skipped when its output exists.
 # SEEDS: 6 test seeds for Can, 3 for Lift (x 50 episodes). ~1.5 h for Can on 2 CPU cores from scratch.
 # The other rows: scripts/robot_baselines.sh, budget_transfer.sh, data_efficiency.sh.
 set -euo pipefail
@@ -26,6 +26,8 @@ train_named "${TASK}_tts_steps1q_0.93" $(steps_recipe 0.93 "$steps") --direction
 evaluate --method tts --pruner "$pruner" --sparsity 0.93
 [ -f "results/robot/agreement_${TASK}_${pruner##*/}.json" ] || python eval/pruner_agreement.py --task "$TASK" \
     --checkpoint "$CKPT" --trajectories "$TRAJ" --pruner "$pruner" --sparsity 0.93
+[ -f "results/robot/headroom_${TASK}_${steps##*/}" ] || python eval/oracle_headroom.py --task "$TASK" \
+    --checkpoint "$CKPT" --trajectories "$TRAJ" --schedule "$steps" --threads 2
 latency() {  # latency OUT_NAME ARGS...: eval/latency.py at batch 1 and 28 unless its result exists
   local out=results/robot/latency_${TASK}_$1.json; shift
   [ -f "$out" ] || python eval/latency.py --threads 2 --batch 1 28 --task "$TASK" --checkpoint "$CKPT" \
