@@ -141,6 +141,22 @@ def agreement_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+def headroom_table(folder: Path) -> str:
+    """Per-call oracle headroom around a searched schedule (eval/oracle_headroom.py: headroom_*.json)."""
+    rows = ["| task | schedule (compute steps) | held-out calls x candidates | action L1: searched | best fixed "
+            "| per-call oracle (same noise) | best fixed / oracle, chosen on another noise draw | git SHA |",
+            "|---|---|---|---|---|---|---|---|"]
+    for path in sorted(folder.glob("headroom_*.json")):
+        r = json.loads(path.read_text())
+        rows.append(f"| {r['task']} | {Path(r['schedule']).name} ({', '.join(map(str, r['compute_steps']))}) | "
+                    f"{r['calls']} x {r['candidates']} | {r['searched_error']:.4f} | {r['best_fixed_error']:.4f} | "
+                    f"{r['oracle_error']:.4f} ({-100 * r['oracle_gain_over_best_fixed']:+.1f}% vs best fixed) | "
+                    f"{r['cross_noise_best_fixed_error']:.4f} / {r['cross_noise_oracle_error']:.4f} "
+                    f"({-100 * r['cross_noise_oracle_gain_over_best_fixed']:+.1f}%) | "
+                    f"`{r['provenance']['git_sha'][:10]}` |")
+    return "\n".join(rows) + "\n"
+
+
 IMAGE_ROWS = ("dense", "fora_n5", "taylorseer_n5_o2", "toca_n6", "duca_n6", "diffusers_fbc",
               "diffusers_taylorseer_n5_o2", "static_bac", "tts", "static_bac_taylor2", "tts_taylor2", "steps_o2",
               "tts_steps_o2")
@@ -235,12 +251,14 @@ def main() -> None:
             + "\n## Policy-call latency, accelerated vs dense in the same process (`eval/latency.py`)\n\n"
             + latency_table(folder)
             + "\n## Learned pruner vs the schedule it started from (`eval/pruner_agreement.py`)\n\n"
-            + agreement_table(folder))
+            + agreement_table(folder)
+            + "\n## Headroom for per-observation decisions (`eval/oracle_headroom.py`)\n\n"
+            + headroom_table(folder))
     write_atomic(folder / "TABLE.md", text)
     readme = REPO / "README.md"
     body = readme.read_text()
     tables = [("robot", summary_table(folder)), ("latency", latency_table(folder)),
-              ("agreement", agreement_table(folder))]
+              ("agreement", agreement_table(folder)), ("headroom", headroom_table(folder))]
     if image.exists() and any(image.glob("digits_*.json")):
         tables.append(("image", image_table(image)))
     for name, table in tables:
