@@ -43,6 +43,15 @@ def load_trajectories(path: Path, successful_only: bool = True) -> tuple[list[di
     return eps, doc["meta"]
 
 
+def held_out_episodes(path: Path, first: int) -> tuple[list[dict], int]:
+    """The successful episodes of ``path`` from index ``first`` on (those a pruner or schedule was not
+    fitted on) and the number of successful episodes in all; an error if there are none."""
+    episodes, _ = load_trajectories(path)
+    if not episodes[first:]:
+        raise ValueError(f"no held-out episodes: {len(episodes)} recorded, the first held-out index is {first}")
+    return episodes[first:], len(episodes)
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--task", choices=sorted(TASKS), required=True)

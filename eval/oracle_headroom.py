@@ -30,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from collect_trajectories import load_trajectories  # noqa: E402
+from collect_trajectories import held_out_episodes  # noqa: E402
 from common import REPO, parse_args, provenance, write_json  # noqa: E402
 from train_pruner import obs_dict  # noqa: E402
 
@@ -100,10 +100,7 @@ def main(argv=None) -> dict:
     if "compute_steps" not in sched:
         raise ValueError(f"{args.schedule} holds no compute_steps (search it with --objective output)")
     first = args.first_episode if args.first_episode is not None else (89 if args.task == "can" else 96)
-    episodes, _ = load_trajectories(args.trajectories)
-    held_out = episodes[first:]
-    if not held_out:
-        raise ValueError(f"no held-out episodes: {len(episodes)} recorded, the first held-out index is {first}")
+    held_out, n_episodes = held_out_episodes(args.trajectories, first)
     windows = np.concatenate([e["obs"] for e in held_out])
     seeds = np.concatenate([e["noise_seed"] for e in held_out])
     pick = np.linspace(0, len(windows) - 1, min(args.calls, len(windows))).round().astype(int)
@@ -132,7 +129,7 @@ def main(argv=None) -> dict:
     res = headroom(torch.stack(errs[0]), torch.stack(errs[1]))
     res.update(task=args.task, schedule=str(args.schedule), compute_steps=sched["compute_steps"],
                candidates=len(cands), best_fixed_steps=cands[res["best_fixed_candidate"]], calls=len(pick),
-               episodes=f"{first}..{len(episodes) - 1}", trajectories=str(args.trajectories),
+               episodes=f"{first}..{n_episodes - 1}", trajectories=str(args.trajectories),
                provenance=provenance(seeds={"noise": "recorded per call"}))
     out = args.out or REPO / "results" / "robot" / f"headroom_{args.task}_{args.schedule.stem}.json"
     write_json(out, res)

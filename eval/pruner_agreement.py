@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from collect_trajectories import load_trajectories  # noqa: E402
+from collect_trajectories import held_out_episodes  # noqa: E402
 from common import REPO, parse_args, provenance, write_json  # noqa: E402
 from figures import replay  # noqa: E402
 from pruner_fit import read_grid  # noqa: E402
@@ -68,10 +68,7 @@ def main(argv=None) -> dict:
     first = args.first_episode
     if first is None:
         first = int(meta.get("n_train_episodes", meta["n_train"]))
-    episodes, _ = load_trajectories(args.trajectories)
-    held_out = episodes[first:]
-    if not held_out:
-        raise ValueError(f"no held-out episodes: {len(episodes)} recorded, the first held-out index is {first}")
+    held_out, n_episodes = held_out_episodes(args.trajectories, first)
     policy = load_policy(args.checkpoint)
     pruner = tts.load_pruner(args.pruner)
     calls = []
@@ -83,7 +80,7 @@ def main(argv=None) -> dict:
         prior = read_grid(Path(meta["prior"]), *calls[-1].decisions()[:, 0].shape, reuse=meta.get("prior_reuse"))
         res = agreement(calls, prior)
     res.update(task=args.task, pruner=str(args.pruner), prior=meta["prior"], sparsity=args.sparsity,
-               episodes=f"{first}..{len(episodes) - 1}", trajectories=str(args.trajectories),
+               episodes=f"{first}..{n_episodes - 1}", trajectories=str(args.trajectories),
                provenance=provenance(seeds={"noise": "recorded per call"}))
     out = args.out or REPO / "results" / "robot" / f"agreement_{args.task}_{args.pruner.name}.json"
     write_json(out, res)
