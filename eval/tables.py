@@ -71,8 +71,13 @@ def paired_vs_dense(runs: list[dict], dense: list[dict]) -> str:
     only_ref = sum(ref[s] and not mine[s] for s in common)
     n = len(common)
     diff, lo, hi = newcombe_paired(both, only_mine, only_ref, n - both - only_mine - only_ref)
-    return (f"{diff:+.3f} ({lo:+.3f}, {hi:+.3f}) on {n}; {only_ref} / {only_mine}, "
+    return (f"{diff:+.3f} ({_signed(lo)}, {_signed(hi)}) on {n}; {only_ref} / {only_mine}, "
             f"p = {sign_test_p(only_ref, only_mine):.2g}")
+
+
+def _signed(x: float) -> str:
+    """+-x to 3 decimals, or 4 where 3 would print a non-zero bound as 0.000."""
+    return f"{x:+.4f}" if 0 < abs(x) < 0.0005 else f"{x:+.3f}"
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
