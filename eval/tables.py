@@ -90,7 +90,8 @@ def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
 def newcombe_paired(a: int, b: int, c: int, d: int, z: float = 1.96) -> tuple[float, float, float]:
     """Difference p1 - p2 of two paired proportions and its confidence interval by Newcombe's (1998,
     Stat. Med. 17:2635) method 10: the Wilson intervals of both margins combined with the
-    (continuity-corrected) phi correlation of the 2x2 table. a: both succeed, b: only the first, c: only the second, d: neither."""
+    (continuity-corrected) phi correlation of the 2x2 table. a: both succeed, b: only the first,
+    c: only the second, d: neither."""
     n = a + b + c + d
     p1, p2 = (a + b) / n, (a + c) / n
     (l1, u1), (l2, u2) = wilson(a + b, n, z), wilson(a + c, n, z)
