@@ -42,7 +42,8 @@ def summary_table(folder: Path) -> str:
         if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
             runs.setdefault((r["task"], r["method"]), []).append(r)
     rows = ["| task | method | success mean | std | evaluation seeds (first test seed of each run) | sparsity "
-            "| vs dense on the same episodes: difference (95% CI), episodes only dense / only this method solved, sign test |",
+            "| vs dense on the same episodes: difference (95% CI), episodes only dense / only this method solved, "
+            "sign test |",
             "|---|---|---|---|---|---|---|"]
     for (task, method), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], -_mean([r["success_rate"] for r in kv[1]]))):
         sr = [r["success_rate"] for r in rs]

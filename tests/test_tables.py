@@ -1,4 +1,5 @@
-"""eval/tables.py and eval/figures.py: the paired comparison with dense (Newcombe interval, sign test), the data-efficiency series."""
+"""eval/tables.py and eval/figures.py: the paired comparison with dense (Newcombe interval, sign test) and
+the data-efficiency series."""
 import sys
 from pathlib import Path
 
