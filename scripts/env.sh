@@ -58,9 +58,9 @@ train_named() {
 }
 
 # search_steps OUT RHO [SEARCH_ARGS...]: whole compute steps placed by output L1 (eval/search_static.py)
-# at sparsity RHO, written to OUT unless it exists.
+# at sparsity RHO on CALLS calibration calls (default 64), written to OUT unless it exists.
 search_steps() {
   local out=$1 rho=$2; shift 2
   [ -f "$out" ] || python eval/search_static.py --checkpoint "$CKPT" --trajectories "$TRAJ" --sparsity "$rho" \
-      --objective output --calls 64 --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$out" "$@"
+      --objective output --calls "${CALLS:-64}" --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$out" "$@"
 }

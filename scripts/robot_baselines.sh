@@ -11,9 +11,10 @@
 #   - bste: the TTS row's step-query pruner retrained with exact-budget straight-through gates (before
 #     commit 65c354a eval/train_pruner.py ignored --train-budget: argmax gates in training)
 #   - fewer sampling steps: DDIM-10 and DDIM-16 (DDIM-7, the matched-FLOPs one: scripts/robot_table.sh)
+#   - c256: the searched whole steps with 256 calibration calls instead of 64 (held-out error + success)
 # Resumable: finished searches, pruners and evaluations are skipped. TASK=lift (default) or can;
 # EPOCHS defaults to 3 (lift) / 1 (can), as for the table's TTS rows; PARTS picks and orders the parts
-# (default: statics timestep rollout bste l2c rho95 ddim); SEEDS as in env.sh. Then: python eval/tables.py
+# (default: statics timestep rollout bste l2c rho95 ddim c256); SEEDS as in env.sh. Then: python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
 robot_task "${TASK:-lift}"
@@ -50,12 +51,19 @@ part_rho95() {
   train_named "${TASK}_tts_steps1q_0.95" $(recipe 0.95) --directions timestep,rollout
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_0.95" --sparsity 0.95
 }
+part_c256() {  # the whole-step search on 256 calibration calls instead of 64, held-out error, success
+  local sched=results/schedules/${TASK}_steps_0.93_c256.json
+  CALLS=256 search_steps "$sched" 0.93
+  [ -f "results/robot/headroom_${TASK}_${sched##*/}" ] || python eval/oracle_headroom.py --task "$TASK" \
+      --checkpoint "$CKPT" --trajectories "$TRAJ" --schedule "$sched" --threads 2
+  evaluate --method static --plan "file:$sched"
+}
 part_ddim() {
   for steps in 10 16; do
     evaluate --method ddim --steps "$steps"
   done
 }
 
-for part in ${PARTS:-statics timestep rollout bste l2c rho95 ddim}; do
+for part in ${PARTS:-statics timestep rollout bste l2c rho95 ddim c256}; do
   "part_$part"
 done
