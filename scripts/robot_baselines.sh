@@ -11,10 +11,12 @@
 #   - bste: the TTS row's step-query pruner retrained with exact-budget straight-through gates (before
 #     commit 65c354a eval/train_pruner.py ignored --train-budget: argmax gates in training)
 #   - fewer sampling steps: DDIM-10 and DDIM-16 (DDIM-7, the matched-FLOPs one: scripts/robot_table.sh)
-#   - c256: the searched whole steps with 256 calibration calls instead of 64 (held-out error + success)
+#   - c256: the searched whole steps with 256 calibration calls instead of 64 (held-out error + success);
+#     c256tts: the TTS row's pruner trained from that prior
 # Resumable: finished searches, pruners and evaluations are skipped. TASK=lift (default) or can;
 # EPOCHS defaults to 3 (lift) / 1 (can), as for the table's TTS rows; PARTS picks and orders the parts
-# (default: statics timestep rollout bste l2c rho95 ddim c256); SEEDS as in env.sh. Then: python eval/tables.py
+# (default: statics timestep rollout bste l2c rho95 ddim c256
+# c256tts); SEEDS as in env.sh. Then: python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
 robot_task "${TASK:-lift}"
@@ -58,12 +60,18 @@ part_c256() {  # the whole-step search on 256 calibration calls instead of 64, h
       --checkpoint "$CKPT" --trajectories "$TRAJ" --schedule "$sched" --threads 2
   evaluate --method static --plan "file:$sched"
 }
+part_c256tts() {  # the TTS row's recipe (timestep + rollout, step query) from the 256-call searched steps
+  # shellcheck disable=SC2046
+  train_named "${TASK}_tts_steps1q_c256_0.93" $(steps_recipe 0.93 "results/schedules/${TASK}_steps_0.93_c256.json") \
+      --directions timestep,rollout
+  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_c256_0.93" --sparsity 0.93
+}
 part_ddim() {
   for steps in 10 16; do
     evaluate --method ddim --steps "$steps"
   done
 }
 
-for part in ${PARTS:-statics timestep rollout bste l2c rho95 ddim c256}; do
+for part in ${PARTS:-statics timestep rollout bste l2c rho95 ddim c256 c256tts}; do
   "part_$part"
 done
