@@ -60,7 +60,8 @@ def headroom(errors: torch.Tensor, errors_other_noise: torch.Tensor) -> dict:
     same with another noise draw per call. Mean errors of the searched schedule, of the best fixed
     candidate and of the per-call oracle (both chosen and scored on the same draw), and the
     noise-honest versions: choices made on one draw scored on the other (averaged both ways). A
-    pruner sees the observation, not the noise, so the cross-draw oracle bounds what it can gain."""
+    pruner sees the observation, not the noise: a per-call preference it could learn must survive
+    the new draw (one draw is a noisy guide, so this estimate of its gain is a conservative one)."""
     if errors.dim() != 2 or errors.shape != errors_other_noise.shape or errors.numel() == 0:
         raise ValueError(f"errors must be two equal [candidates, calls] tensors, got {tuple(errors.shape)} "
                          f"and {tuple(errors_other_noise.shape)}")
