@@ -263,6 +263,32 @@ def test_pruner_loss_weights_padded_samples_out():
 
 
 # ---------------------------------------------------------------- end to end on a toy policy
+def _toy_policy_and_trajectories(tmp_path, lengths: list[int]):
+    """A small 6-step policy saved at tmp_path/policy and one recorded successful episode per entry
+    of ``lengths`` (that many calls, dense action_pred with noise seed 100 * episode + call) at
+    tmp_path/traj.pt, as eval/collect_trajectories.py writes them."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
+    from collect_trajectories import save
+    from train_pruner import obs_dict
+    from tts.adapters.dp_policy import save_policy
+
+    pol = small_policy(num_steps=6)
+    save_policy(pol, tmp_path / "policy", dtype=torch.float32)
+    episodes = []
+    for e, n in enumerate(lengths):
+        obs = np.stack([np.concatenate([obs_batch(1, 10 * e + r)[k][0] for k in obs_batch(1)], -1) for r in range(n)])
+        preds = np.stack([pol.predict_action(obs_dict(pol, torch.as_tensor(o[None])),
+                                             torch.Generator().manual_seed(100 * e + r))["action_pred"][0].numpy()
+                          for r, o in enumerate(obs)])
+        episodes.append({"seed": e, "success": True, "obs": obs, "action_pred": preds, "action": preds[:, 1:9],
+                         "noise_seed": 100 * e + np.arange(n)})
+    save(tmp_path / "traj.pt", episodes, {"command": "test"})
+    return pol
+
+
 def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
     """eval/train_pruner.py on trajectories of a tiny policy: the checkpoint is written, the pruner
     learns to reuse (its sparsity moves from ~0 toward the target) and serves test-time decisions."""
@@ -271,21 +297,8 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
     import train_pruner
-    from collect_trajectories import save
-    from tts.adapters.dp_policy import save_policy
 
-    pol = small_policy(num_steps=6)
-    save_policy(pol, tmp_path / "policy", dtype=torch.float32)
-    episodes = []
-    for e in range(6):
-        n = 3 + e % 2
-        obs = np.stack([np.concatenate([obs_batch(1, 10 * e + r)[k][0] for k in obs_batch(1)], -1) for r in range(n)])
-        preds = [pol.predict_action(train_pruner.obs_dict(pol, torch.as_tensor(o[None])),
-                                    torch.Generator().manual_seed(100 * e + r))["action_pred"][0].numpy()
-                 for r, o in enumerate(obs)]
-        episodes.append({"seed": e, "success": True, "obs": obs, "action_pred": np.stack(preds),
-                         "action": np.stack(preds)[:, 1:9], "noise_seed": 100 * e + np.arange(n)})
-    save(tmp_path / "traj.pt", episodes, {"command": "test"})
+    pol = _toy_policy_and_trajectories(tmp_path, [3 + e % 2 for e in range(6)])
     out = tmp_path / "pruner_0.6"  # a dot in the name is not a suffix
     args = ["--trajectories", str(tmp_path / "traj.pt"), "--checkpoint", str(tmp_path / "policy"), "--out", str(out),
             "--sparsity", "0.6", "--epochs", "3", "--batch", "2", "--n-train", "4", "--n-val", "2", "--lr", "0.02",
@@ -324,20 +337,8 @@ def test_train_budget_makes_the_training_forward_take_exactly_the_budget(tmp_pat
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
     import train_pruner
-    from collect_trajectories import save
-    from tts.adapters.dp_policy import save_policy
 
-    pol = small_policy(num_steps=6)
-    save_policy(pol, tmp_path / "policy", dtype=torch.float32)
-    episodes = []
-    for e in range(4):
-        obs = np.stack([np.concatenate([obs_batch(1, 10 * e + r)[k][0] for k in obs_batch(1)], -1) for r in range(3)])
-        preds = np.stack([pol.predict_action(train_pruner.obs_dict(pol, torch.as_tensor(o[None])),
-                                             torch.Generator().manual_seed(100 * e + r))["action_pred"][0].numpy()
-                          for r, o in enumerate(obs)])
-        episodes.append({"seed": e, "success": True, "obs": obs, "action_pred": preds, "action": preds[:, 1:9],
-                         "noise_seed": 100 * e + np.arange(3)})
-    save(tmp_path / "traj.pt", episodes, {"command": "test"})
+    _toy_policy_and_trajectories(tmp_path, [3] * 4)
     base = ["--trajectories", str(tmp_path / "traj.pt"), "--checkpoint", str(tmp_path / "policy"), "--sparsity", "0.5",
             "--epochs", "1", "--batch", "2", "--n-train", "2", "--n-val", "2", "--lr", "1e-4", "--paired", "--static",
             "--directions", "timestep", "--val-mode", "budget"]
