@@ -64,3 +64,10 @@ search_steps() {
   [ -f "$out" ] || python eval/search_static.py --checkpoint "$CKPT" --trajectories "$TRAJ" --sparsity "$rho" \
       --objective output --calls "${CALLS:-64}" --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$out" "$@"
 }
+
+# headroom SCHEDULE: eval/oracle_headroom.py around a searched whole-step schedule, unless its result
+# (results/robot/headroom_<task>_<schedule file>) exists.
+headroom() {
+  [ -f "results/robot/headroom_${TASK}_${1##*/}" ] || python eval/oracle_headroom.py --task "$TASK" \
+      --checkpoint "$CKPT" --trajectories "$TRAJ" --schedule "$1" --threads 2
+}

@@ -56,8 +56,7 @@ part_rho95() {
 part_c256() {  # the whole-step search on 256 calibration calls instead of 64, held-out error, success
   local sched=results/schedules/${TASK}_steps_0.93_c256.json
   CALLS=256 search_steps "$sched" 0.93
-  [ -f "results/robot/headroom_${TASK}_${sched##*/}" ] || python eval/oracle_headroom.py --task "$TASK" \
-      --checkpoint "$CKPT" --trajectories "$TRAJ" --schedule "$sched" --threads 2
+  headroom "$sched"
   evaluate --method static --plan "file:$sched"
 }
 part_c256tts() {  # the TTS row's recipe (timestep + rollout, step query) from the 256-call searched steps

@@ -26,8 +26,7 @@ train_named "${TASK}_tts_steps1q_0.93" $(steps_recipe 0.93 "$steps") --direction
 evaluate --method tts --pruner "$pruner" --sparsity 0.93
 [ -f "results/robot/agreement_${TASK}_${pruner##*/}.json" ] || python eval/pruner_agreement.py --task "$TASK" \
     --checkpoint "$CKPT" --trajectories "$TRAJ" --pruner "$pruner" --sparsity 0.93
-[ -f "results/robot/headroom_${TASK}_${steps##*/}" ] || python eval/oracle_headroom.py --task "$TASK" \
-    --checkpoint "$CKPT" --trajectories "$TRAJ" --schedule "$steps" --threads 2
+headroom "$steps"
 latency() {  # latency OUT_NAME ARGS...: eval/latency.py at batch 1 and 28 unless its result exists
   local out=results/robot/latency_${TASK}_$1.json; shift
   [ -f "$out" ] || python eval/latency.py --threads 2 --batch 1 28 --task "$TASK" --checkpoint "$CKPT" \
