@@ -146,6 +146,12 @@ def _prior_calibration(command: str) -> Optional[int]:
     return json.loads(path.read_text()).get("calibration_episodes") if path.exists() else None
 
 
+def _schedule_label(sched: dict) -> str:
+    """Series of a searched whole-step schedule: one per sparsity and calibration-call budget."""
+    return (f"searched steps, rho={sched['sparsity']:g}, {sched.get('calibration_calls', '?')} calls "
+            "(calibration trajectories)")
+
+
 def _efficiency_rows(task: str) -> dict[str, list[tuple[int, float]]]:
     """(training or calibration trajectories, success) per series, from finished result JSONs:
     TTS pruners by their ``n_train_episodes``; searched whole-step schedules (``--plan file:``) by
@@ -169,8 +175,7 @@ def _efficiency_rows(task: str) -> dict[str, list[tuple[int, float]]]:
             continue
         sched = json.loads((REPO / plan).read_text())
         if sched.get("method", "").startswith("compute steps shared"):
-            label = f"searched steps, rho={sched['sparsity']:g} (calibration trajectories)"
-            series.setdefault(label, []).append((sched["calibration_episodes"], r["success_rate"]))
+            series.setdefault(_schedule_label(sched), []).append((sched["calibration_episodes"], r["success_rate"]))
     return series
 
 

@@ -3,8 +3,8 @@
 # unless said otherwise:
 #   - single-direction static schedules: FORA-style interval (timestep), rollout, forward (uniform:)
 #   - single-direction TTS pruners: the step-query recipe of the table's TTS row (searched compute
-#     steps as prior, tied branches, exact-budget gates, paired) with timestep-only or rollout-only
-#     reuse (--prior-reuse maps the prior's reuse decisions to that direction)
+#     steps as prior, tied branches, exact-budget gates, paired) with timestep-only, rollout-only or
+#     forward-only reuse (--prior-reuse maps the prior's reuse decisions to that direction)
 #   - Learning-to-Cache-style learned static router (one logit per step x branch, timestep reuse,
 #     exact-budget gates), served at exactly 93%
 #   - TTS at 95%: searched steps at 0.95 + the step-query pruner trained there
@@ -12,11 +12,12 @@
 #     commit 65c354a eval/train_pruner.py ignored --train-budget: argmax gates in training)
 #   - fewer sampling steps: DDIM-10 and DDIM-16 (DDIM-7, the matched-FLOPs one: scripts/robot_table.sh)
 #   - c256: the searched whole steps with 256 calibration calls instead of 64 (held-out error + success);
-#     c256tts: the TTS row's pruner trained from that prior
+#     c256tts: the TTS row's pruner trained from that prior; c256ts: the same, timestep only (on Can
+#     scripts/robot_table.sh runs these three with its 6 test seeds)
 # Resumable: finished searches, pruners and evaluations are skipped. TASK=lift (default) or can;
 # EPOCHS defaults to 3 (lift) / 1 (can), as for the table's TTS rows; PARTS picks and orders the parts
-# (default: statics timestep rollout bste l2c rho95 ddim c256
-# c256tts); SEEDS as in env.sh. Then: python eval/tables.py
+# (default: statics timestep rollout forward bste l2c rho95 ddim c256 c256tts c256ts); SEEDS as in
+# env.sh. Then: python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
 robot_task "${TASK:-lift}"
@@ -36,6 +37,11 @@ part_rollout() {
   # shellcheck disable=SC2046
   train_named "${TASK}_tts_steps1q_rollout_0.93" $(recipe 0.93) --directions rollout --prior-reuse rollout
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_rollout_0.93" --sparsity 0.93
+}
+part_forward() {  # reuse of the last computed branch of the same kind (in this step or an earlier one)
+  # shellcheck disable=SC2046
+  train_named "${TASK}_tts_steps1q_forward_0.93" $(recipe 0.93) --directions forward --prior-reuse forward
+  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_forward_0.93" --sparsity 0.93
 }
 part_bste() {  # the TTS row's recipe retrained since the fix that makes --train-budget effective
   # shellcheck disable=SC2046
@@ -59,18 +65,19 @@ part_c256() {  # the whole-step search on 256 calibration calls instead of 64, h
   headroom "$sched"
   evaluate --method static --plan "file:$sched"
 }
-part_c256tts() {  # the TTS row's recipe (timestep + rollout, step query) from the 256-call searched steps
+c256_pruner() {  # NAME DIRECTIONS: the TTS row's recipe (step query) from the 256-call searched steps
   # shellcheck disable=SC2046
-  train_named "${TASK}_tts_steps1q_c256_0.93" $(steps_recipe 0.93 "results/schedules/${TASK}_steps_0.93_c256.json") \
-      --directions timestep,rollout
-  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_c256_0.93" --sparsity 0.93
+  train_named "$1" $(steps_recipe 0.93 "results/schedules/${TASK}_steps_0.93_c256.json") --directions "$2"
+  evaluate --method tts --pruner "checkpoints/pruners/$1" --sparsity 0.93
 }
+part_c256tts() { c256_pruner "${TASK}_tts_steps1q_c256_0.93" timestep,rollout; }
+part_c256ts() { c256_pruner "${TASK}_tts_steps1q_c256_timestep_0.93" timestep; }
 part_ddim() {
   for steps in 10 16; do
     evaluate --method ddim --steps "$steps"
   done
 }
 
-for part in ${PARTS:-statics timestep rollout bste l2c rho95 ddim c256 c256tts}; do
+for part in ${PARTS:-statics timestep rollout forward bste l2c rho95 ddim c256 c256tts c256ts}; do
   "part_$part"
 done

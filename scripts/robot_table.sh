@@ -4,7 +4,9 @@
 # DDPM-100, DDIM-7 (matched FLOPs), the BAC-style per-branch schedule and the whole-step schedule
 # searched offline, the TTS step-query pruner started from the searched steps (exact budget, 93%),
 # its decisions vs its prior, the per-call oracle headroom around the searched steps, latency at
-# batch 1 and 28 against dense in one process, the figures (docs/<task>_*.png), then the tables. Every step is resumable and skipped when its output exists.
+# batch 1 and 28 against dense in one process, the figures (docs/<task>_*.png), for Can the same
+# from whole steps searched on 256 calibration calls (robot_baselines.sh parts c256 c256tts c256ts),
+# then the tables. Every step is resumable and skipped when its output exists.
 # SEEDS: 6 test seeds for Can, 3 for Lift (x 50 episodes). ~1.5 h for Can on 2 CPU cores from scratch.
 # The other rows: scripts/robot_baselines.sh, budget_transfer.sh, data_efficiency.sh.
 set -euo pipefail
@@ -20,22 +22,30 @@ evaluate --method static --plan "file:results/schedules/${TASK}_bac_0.93.json"
 steps=results/schedules/${TASK}_steps_0.93.json
 search_steps "$steps" 0.93
 evaluate --method static --plan "file:$steps"
-pruner=checkpoints/pruners/${TASK}_tts_steps1q_0.93
-# shellcheck disable=SC2046
-train_named "${TASK}_tts_steps1q_0.93" $(steps_recipe 0.93 "$steps") --directions timestep,rollout
-evaluate --method tts --pruner "$pruner" --sparsity 0.93
-[ -f "results/robot/agreement_${TASK}_${pruner##*/}.json" ] || python eval/pruner_agreement.py --task "$TASK" \
-    --checkpoint "$CKPT" --trajectories "$TRAJ" --pruner "$pruner" --sparsity 0.93
-headroom "$steps"
 latency() {  # latency OUT_NAME ARGS...: eval/latency.py at batch 1 and 28 unless its result exists
   local out=results/robot/latency_${TASK}_$1.json; shift
   [ -f "$out" ] || python eval/latency.py --threads 2 --batch 1 28 --task "$TASK" --checkpoint "$CKPT" \
       --trajectories "$TRAJ" "$@"
 }
-latency "tts-${pruner##*/}-budget0.93" --method tts --pruner "$pruner" --sparsity 0.93
+checks() {  # checks PRUNER_NAME: a table TTS pruner's held-out decisions vs its prior, and its latency
+  local pruner=checkpoints/pruners/$1
+  [ -f "results/robot/agreement_${TASK}_$1.json" ] || python eval/pruner_agreement.py --task "$TASK" \
+      --checkpoint "$CKPT" --trajectories "$TRAJ" --pruner "$pruner" --sparsity 0.93
+  latency "tts-$1-budget0.93" --method tts --pruner "$pruner" --sparsity 0.93
+}
+pruner=checkpoints/pruners/${TASK}_tts_steps1q_0.93
+# shellcheck disable=SC2046
+train_named "${TASK}_tts_steps1q_0.93" $(steps_recipe 0.93 "$steps") --directions timestep,rollout
+evaluate --method tts --pruner "$pruner" --sparsity 0.93
+checks "${pruner##*/}"
+headroom "$steps"
 latency "static-${TASK}_steps_0.93" --method static --plan "file:$steps"
 [ -f "docs/${TASK}_pruning_masks.png" ] || python eval/figures.py masks --task "$TASK" --checkpoint "$CKPT" \
     --trajectories "$TRAJ" --pruner "$pruner" --sparsity 0.93
 [ -f "docs/${TASK}_feature_similarity.png" ] || python eval/figures.py similarity --task "$TASK" \
     --checkpoint "$CKPT" --trajectories "$TRAJ"
+if [ "$TASK" = can ]; then  # Can's TTS row within 2 points: the steps searched on 256 calls, then the pruner
+  PARTS="c256 c256tts c256ts" bash scripts/robot_baselines.sh
+  checks "${TASK}_tts_steps1q_c256_0.93"
+fi
 python eval/tables.py

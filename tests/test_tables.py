@@ -58,3 +58,10 @@ def test_data_efficiency_pipeline_is_told_apart_by_the_priors_calibration_trajec
     assert _prior_calibration(cmd.replace("_n4", "")) == 32  # the table's schedule: 32 trajectories
     assert _prior_calibration("python eval/train_pruner.py --n-train 4") is None
     assert _prior_calibration("python eval/train_pruner.py --prior") is None
+
+
+def test_data_efficiency_keeps_schedules_searched_on_more_calls_apart():
+    from figures import _schedule_label
+    a = _schedule_label({"sparsity": 0.93, "calibration_calls": 64})
+    b = _schedule_label({"sparsity": 0.93, "calibration_calls": 256})
+    assert a != b and "256 calls" in b and "rho=0.93" in a
