@@ -147,8 +147,10 @@ def _prior_calibration(command: str) -> Optional[int]:
 
 
 def _schedule_label(sched: dict) -> str:
-    """Series of a searched whole-step schedule: one per sparsity and calibration-call budget."""
-    return (f"searched steps, rho={sched['sparsity']:g}, {sched.get('calibration_calls', '?')} calls "
+    """Series of a searched whole-step schedule: one per sparsity and calibration-call budget (the
+    ``--calls`` asked for; a search on few trajectories uses the windows it has, see
+    ``calibration_calls_used``)."""
+    return (f"searched steps, rho={sched['sparsity']:g}, <= {sched.get('calibration_calls', '?')} calls "
             "(calibration trajectories)")
 
 
@@ -166,7 +168,7 @@ def _efficiency_rows(task: str) -> dict[str, list[tuple[int, float]]]:
             if abs(r["tts"]["sparsity_non_dense_calls"] - 0.93) < 0.01:  # the pruners run at 93%
                 pipeline = meta["n_train_episodes"] == _prior_calibration(meta.get("command", ""))
                 label = ("TTS: search + step-query pruner on the same trajectories" if pipeline  # pruner_data_efficiency.sh
-                         else "TTS pruners near rho=0.93 (training trajectories)")
+                         else "TTS pruners near rho=0.93, recipes differ (training trajectories)")
                 series.setdefault(label, []).append((meta["n_train_episodes"], r["success_rate"]))
             continue
         cmd = r.get("provenance", {}).get("command", "").split()
@@ -184,7 +186,7 @@ def data_efficiency(args) -> Path:
     series = _efficiency_rows(args.task)
     if not series:
         raise SystemExit(f"no {args.task} results with training / calibration trajectory counts in results/robot/")
-    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    fig, ax = plt.subplots(figsize=(6.0, 4.6))
     for i, ((label, rows), color) in enumerate(zip(sorted(series.items()), COLORS[1:])):
         shift = 1.1 ** (i - 1)  # series that coincide stay visible side by side
         rows = [(n * shift, s) for n, s in rows]
@@ -193,7 +195,7 @@ def data_efficiency(args) -> Path:
             means = [np.mean([s for n2, s in rows if n2 == n]) for n in ns]
             ax.plot(ns, means, "o-", color=color, label=f"{label}, mean over runs")
         ax.scatter([n for n, _ in rows], [s for _, s in rows], color=color, s=12, alpha=0.6,
-                   label=None if len(ns) > 1 else f"{label}, one dot per run (recipes differ)")
+                   label=None if len(ns) > 1 else f"{label}, one dot per run")
     dense = [json.loads(p.read_text())["success_rate"]
              for p in sorted((REPO / "results" / "robot").glob(f"{args.task}_dense_*.json"))]
     if dense:
@@ -202,7 +204,7 @@ def data_efficiency(args) -> Path:
     ax.set_xlabel("trajectories")
     ax.set_ylabel("success rate (50 test episodes per seed)")
     ax.set_ylim(0, 1.05)
-    ax.legend(fontsize=7, loc="lower left")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=1, frameon=False)
     ax.grid(alpha=0.3)
     ax.set_title(f"{args.task}: success vs number of trajectories", fontsize=9)
     fig.tight_layout()

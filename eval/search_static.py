@@ -50,7 +50,7 @@ def policy_calibration(args):
                                                 generator=torch.Generator().manual_seed(args.seed + s))["action_pred"]
                           for s in range(0, len(pick), args.batch)])
 
-    return policy, sample, policy.cfg.num_inference_steps, 3 * policy.model.config.n_layer
+    return policy, sample, policy.cfg.num_inference_steps, 3 * policy.model.config.n_layer, len(pick)
 
 
 def dit_calibration(args):
@@ -67,7 +67,7 @@ def dit_calibration(args):
                                      steps=args.steps, cfg_scale=args.cfg, generator=g)
                           for s in range(0, args.calls, args.batch)])
 
-    return model, sample, args.steps, 2 * model.config.depth
+    return model, sample, args.steps, 2 * model.config.depth, args.calls
 
 
 def output_search(model, sample, steps: int, branches: int, rho: float, args):
@@ -114,11 +114,11 @@ def main(argv=None) -> dict:
     if args.forecast and args.objective != "output":
         raise SystemExit("--forecast applies to --objective output")
     if args.dit is not None:
-        model, sample, steps, branches = dit_calibration(args)
+        model, sample, steps, branches, n_calls = dit_calibration(args)
     else:
         if args.trajectories is None:
             raise SystemExit("--checkpoint needs --trajectories (calibration observations)")
-        model, sample, steps, branches = policy_calibration(args)
+        model, sample, steps, branches, n_calls = policy_calibration(args)
     errors = reuse_errors(model, sample) if args.objective == "similarity" else None
     written = {}
     for rho in args.sparsity:
@@ -134,6 +134,7 @@ def main(argv=None) -> dict:
                        else "compute steps shared by all branches, local search on output L1 to dense"),
             "model": str(args.dit or args.checkpoint), "trajectories": str(args.trajectories),
             "calibration_episodes": args.episodes, "calibration_calls": args.calls,
+            "calibration_calls_used": n_calls,  # --calls, capped by the windows of --episodes
             "sparsity": rho, "realised_sparsity": float((grid != 0).float().mean()),
             "directions": ["timestep"],
             "grid": ["".join("CFTR"[c] for c in row.tolist()) for row in grid], **extra,

@@ -505,3 +505,25 @@ def test_step_query_pruner_decides_steps_at_a_fraction_of_the_macs(tmp_path):
     assert torch.equal(load_pruner(tmp_path / "p").eval()(memory), logits)
     with pytest.raises(ValueError, match="needs tie_branches"):
         PrunerConfig(memory_dim=8, num_branches=3, step_query=True)
+
+
+def test_output_search_on_recorded_windows_records_the_calls_it_used(tmp_path):
+    """eval/search_static.py --objective output on one toy trajectory: whole compute steps shared by
+    all branches at the budget, and the calls asked for (64) vs the windows it had (3) both recorded."""
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
+    import search_static
+
+    _toy_policy_and_trajectories(tmp_path, [3, 4])
+    out = tmp_path / "steps.json"
+    search_static.main(["--checkpoint", str(tmp_path / "policy"), "--trajectories", str(tmp_path / "traj.pt"),
+                        "--sparsity", "0.5", "--objective", "output", "--calls", "64", "--episodes", "1",
+                        "--shifts", "1", "--sweeps", "1", "--out", str(out)])
+    doc = json.loads(out.read_text())
+    assert (doc["calibration_episodes"], doc["calibration_calls"], doc["calibration_calls_used"]) == (1, 64, 3)
+    computes = [row for row in doc["grid"] if set(row) == {"C"}]
+    assert doc["grid"][0] == "C" * len(doc["grid"][0]) and len(computes) == 3  # 6 steps at 50%, step 0 included
+    assert all(set(row) in ({"C"}, {"T"}) for row in doc["grid"])  # whole steps: every branch alike
