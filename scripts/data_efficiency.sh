@@ -6,7 +6,8 @@
 # then trains the step-query TTS pruner from each schedule on the same N trajectories (validation:
 # the next 2) and evaluates it the same way. Resumable: every schedule / pruner / result that exists
 # is skipped (FORCE=1 redoes the searches and static evaluations). Needs data/trajectories/<task>.pt
-# (eval/collect_trajectories.py). ~25 min for Lift on 2 CPU cores (+ ~8 min per N with the pruner).
+# (eval/collect_trajectories.py). ~25 min for Lift, ~36 min for Can on 2 CPU cores (+ ~8 min per N with the
+# pruner).
 # Then: python eval/figures.py data-efficiency --task <task>
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
