@@ -21,8 +21,6 @@ for n in ${NS:-1 2 4 8 16}; do
   search_steps "$sched" "$RHO" --episodes "$n"
   evaluate --method static --plan "file:$sched"
   [ -n "${WITH_PRUNER:-}" ] || continue
-  # shellcheck disable=SC2046
-  NTRAIN=$n NVAL=2 EPOCHS=3 train_named "${TASK}_tts_steps1q_${RHO}_n${n}" $(steps_recipe "$RHO" "$sched") \
+  NTRAIN=$n NVAL=2 EPOCHS=3 step_pruner "${TASK}_tts_steps1q_${RHO}_n${n}" "$sched" "$RHO" \
       --directions timestep,rollout --batch "$(( n < 16 ? n : 16 ))"
-  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_${RHO}_n${n}" --sparsity $RHO
 done

@@ -34,6 +34,15 @@ steps_recipe() {
        --val-mode budget
 }
 
+# step_pruner NAME SCHEDULE RHO TRAIN_ARGS...: the table's step-level TTS pruner (steps_recipe) started
+# from SCHEDULE, trained (train_named) and evaluated (evaluate) at sparsity RHO.
+step_pruner() {
+  local name=$1 sched=$2 rho=$3; shift 3
+  # shellcheck disable=SC2046
+  train_named "$name" $(steps_recipe "$rho" "$sched") "$@"
+  evaluate --method tts --pruner "checkpoints/pruners/$name" --sparsity "$rho"
+}
+
 # robot_task TASK: the per-task paths and training sizes the robot scripts share (TASK, CKPT, TRAJ,
 # NTRAIN: the table's pruners train on 96 Lift / 89 Can trajectories with the next 16 held out for
 # validation, EPOCHS: 3 Lift / 1 Can unless set).

@@ -21,32 +21,22 @@
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
 robot_task "${TASK:-lift}"
-recipe() { steps_recipe "$1" "results/schedules/${TASK}_steps_$1.json"; }  # env.sh, searched steps at $1
+searched() { echo "results/schedules/${TASK}_steps_$1.json"; }  # the searched steps at sparsity $1
 
 part_statics() {
   for d in timestep rollout forward; do
     evaluate --method static --plan "uniform:0.93:$d"
   done
 }
-part_timestep() {
-  # shellcheck disable=SC2046
-  train_named "${TASK}_tts_steps1q_timestep_0.93" $(recipe 0.93) --directions timestep
-  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_timestep_0.93" --sparsity 0.93
-}
+part_timestep() { step_pruner "${TASK}_tts_steps1q_timestep_0.93" "$(searched 0.93)" 0.93 --directions timestep; }
 part_rollout() {
-  # shellcheck disable=SC2046
-  train_named "${TASK}_tts_steps1q_rollout_0.93" $(recipe 0.93) --directions rollout --prior-reuse rollout
-  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_rollout_0.93" --sparsity 0.93
+  step_pruner "${TASK}_tts_steps1q_rollout_0.93" "$(searched 0.93)" 0.93 --directions rollout --prior-reuse rollout
 }
 part_forward() {  # reuse of the last computed branch of the same kind (in this step or an earlier one)
-  # shellcheck disable=SC2046
-  train_named "${TASK}_tts_steps1q_forward_0.93" $(recipe 0.93) --directions forward --prior-reuse forward
-  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_forward_0.93" --sparsity 0.93
+  step_pruner "${TASK}_tts_steps1q_forward_0.93" "$(searched 0.93)" 0.93 --directions forward --prior-reuse forward
 }
 part_bste() {  # the TTS row's recipe retrained since the fix that makes --train-budget effective
-  # shellcheck disable=SC2046
-  train_named "${TASK}_tts_steps1q_bste_0.93" $(recipe 0.93) --directions timestep,rollout
-  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_bste_0.93" --sparsity 0.93
+  step_pruner "${TASK}_tts_steps1q_bste_0.93" "$(searched 0.93)" 0.93 --directions timestep,rollout
 }
 part_l2c() {
   train_named "${TASK}_l2c_budget_0.93" --static --directions timestep --sparsity 0.93 --train-budget --lr 1e-2 \
@@ -54,24 +44,19 @@ part_l2c() {
   evaluate --method tts --pruner "checkpoints/pruners/${TASK}_l2c_budget_0.93" --sparsity 0.93
 }
 part_rho95() {
-  search_steps "results/schedules/${TASK}_steps_0.95.json" 0.95
-  # shellcheck disable=SC2046
-  train_named "${TASK}_tts_steps1q_0.95" $(recipe 0.95) --directions timestep,rollout
-  evaluate --method tts --pruner "checkpoints/pruners/${TASK}_tts_steps1q_0.95" --sparsity 0.95
+  search_steps "$(searched 0.95)" 0.95
+  step_pruner "${TASK}_tts_steps1q_0.95" "$(searched 0.95)" 0.95 --directions timestep,rollout
 }
 part_c256() {  # the whole-step search on 256 calibration calls instead of 64, held-out error, success
-  local sched=results/schedules/${TASK}_steps_0.93_c256.json
+  local sched
+  sched=$(searched 0.93_c256)
   CALLS=256 search_steps "$sched" 0.93
   headroom "$sched"
   evaluate --method static --plan "file:$sched"
 }
-c256_pruner() {  # NAME DIRECTIONS: the TTS row's recipe (step query) from the 256-call searched steps
-  # shellcheck disable=SC2046
-  train_named "$1" $(steps_recipe 0.93 "results/schedules/${TASK}_steps_0.93_c256.json") --directions "$2"
-  evaluate --method tts --pruner "checkpoints/pruners/$1" --sparsity 0.93
-}
-part_c256tts() { c256_pruner "${TASK}_tts_steps1q_c256_0.93" timestep,rollout; }
-part_c256ts() { c256_pruner "${TASK}_tts_steps1q_c256_timestep_0.93" timestep; }
+# the TTS row's recipe from the 256-call searched steps: timestep + rollout, and timestep only
+part_c256tts() { step_pruner "${TASK}_tts_steps1q_c256_0.93" "$(searched 0.93_c256)" 0.93 --directions timestep,rollout; }
+part_c256ts() { step_pruner "${TASK}_tts_steps1q_c256_timestep_0.93" "$(searched 0.93_c256)" 0.93 --directions timestep; }
 part_ddim() {
   for steps in 10 16; do
     evaluate --method ddim --steps "$steps"

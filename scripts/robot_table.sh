@@ -34,9 +34,7 @@ checks() {  # checks PRUNER_NAME: a table TTS pruner's held-out decisions vs its
   latency "tts-$1-budget0.93" --method tts --pruner "$pruner" --sparsity 0.93
 }
 pruner=checkpoints/pruners/${TASK}_tts_steps1q_0.93
-# shellcheck disable=SC2046
-train_named "${TASK}_tts_steps1q_0.93" $(steps_recipe 0.93 "$steps") --directions timestep,rollout
-evaluate --method tts --pruner "$pruner" --sparsity 0.93
+step_pruner "${pruner##*/}" "$steps" 0.93 --directions timestep,rollout
 checks "${pruner##*/}"
 headroom "$steps"
 latency "static-${TASK}_steps_0.93" --method static --plan "file:$steps"
