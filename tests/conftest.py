@@ -2,8 +2,12 @@
 from __future__ import annotations
 
 import os
+import sys
+from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
+# the eval/ scripts are importable as modules in every test (import robot, search_static, ...)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
 
 import pytest
 import torch

@@ -3,7 +3,6 @@ executed-branch and MAC counts, removal, eval/imagenet.py argument checks."""
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import pytest
@@ -111,7 +110,6 @@ def test_calibrated_threshold_reproduces_its_sparsity_and_bad_input_errors():
 
 
 def test_imagenet_cli_checks_the_diffusers_cache_arguments():
-    sys.path.insert(0, str(REPO / "eval"))
     import imagenet
 
     def args(**kw):
@@ -180,7 +178,6 @@ def test_imagenet_script_samples_a_diffusers_folder_with_a_diffusers_cache(tmp_p
 
     from tts.adapters.dit import DiT, DiTConfig
 
-    sys.path.insert(0, str(REPO / "eval"))
     import imagenet
 
     pixel = randomize(DiT(DiTConfig(input_size=8, patch_size=2, in_channels=3, hidden_size=32, depth=2, num_heads=2,

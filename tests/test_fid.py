@@ -13,7 +13,6 @@ import pytest
 import torch
 
 pytest.importorskip("scipy")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
 import fid  # noqa: E402
 
 

@@ -168,7 +168,6 @@ def test_missing_model_names_what_to_download(tmp_path):
             load_dit(missing)
         assert "https://dl.fbaipublicfiles.com/DiT/models/DiT-XL-2-256x256.pt" in str(err.value)
         assert "eval/train_dit.py" in str(err.value)
-    sys.path.insert(0, str(REPO / "eval"))
     import imagenet
 
     with pytest.raises(FileNotFoundError, match="no DiT checkpoint"):
@@ -220,7 +219,6 @@ def test_imagenet_script_two_processes_equal_one_process(tmp_path):
 def test_image_pruner_trains_end_to_end_and_static_schedule_search(tmp_path):
     """eval/search_static.py --dit finds a schedule; eval/train_image_pruner.py starts from it
     (--prior: epoch 0 is exactly that schedule) and writes a pruner that eval/imagenet.py can run."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
     import search_static
     import train_image_pruner
 
@@ -247,7 +245,6 @@ def test_image_pruner_trains_end_to_end_and_static_schedule_search(tmp_path):
 
 
 def test_every_n_prior_grid():
-    sys.path.insert(0, str(REPO / "eval"))
     from pruner_fit import read_grid
 
     g = read_grid(Path("every_n:5"), steps=12, branches=4)
@@ -260,7 +257,6 @@ def test_every_n_prior_grid():
 
 def test_prior_reuse_maps_every_reuse_decision_to_one_direction():
     """--prior-reuse rollout: the same compute steps, rollout reuse in between (single-direction variant)."""
-    sys.path.insert(0, str(REPO / "eval"))
     from pruner_fit import read_grid
 
     base = read_grid(Path("every_n:4"), steps=8, branches=3)

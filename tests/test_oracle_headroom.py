@@ -1,13 +1,9 @@
 """eval/oracle_headroom.py: candidate schedules and the oracle / cross-noise headroom arithmetic."""
-import sys
-from pathlib import Path
 
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
-
-from oracle_headroom import headroom, neighbours  # noqa: E402
+from oracle_headroom import headroom, neighbours
 
 
 def test_neighbours_move_one_compute_step_and_keep_step_zero_and_the_budget():

@@ -267,10 +267,6 @@ def _toy_policy_and_trajectories(tmp_path, lengths: list[int]):
     """A small 6-step policy saved at tmp_path/policy and one recorded successful episode per entry
     of ``lengths`` (that many calls, dense action_pred with noise seed 100 * episode + call) at
     tmp_path/traj.pt, as eval/collect_trajectories.py writes them."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
     from collect_trajectories import save
     from train_pruner import obs_dict
     from tts.adapters.dp_policy import save_policy
@@ -292,10 +288,6 @@ def _toy_policy_and_trajectories(tmp_path, lengths: list[int]):
 def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
     """eval/train_pruner.py on trajectories of a tiny policy: the checkpoint is written, the pruner
     learns to reuse (its sparsity moves from ~0 toward the target) and serves test-time decisions."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
     import train_pruner
 
     pol = _toy_policy_and_trajectories(tmp_path, [3 + e % 2 for e in range(6)])
@@ -332,10 +324,6 @@ def test_train_budget_makes_the_training_forward_take_exactly_the_budget(tmp_pat
     """--train-budget: the straight-through forward is the exact-budget decision, so a static router
     that starts at "compute everything" trains at the target sparsity from its first step (without
     the flag its argmax forward computed everything and the option was silently ignored)."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
     import train_pruner
 
     _toy_policy_and_trajectories(tmp_path, [3] * 4)
@@ -351,11 +339,8 @@ def test_train_budget_makes_the_training_forward_take_exactly_the_budget(tmp_pat
 
 
 def test_pruner_agreement_counts_calls_and_decisions_equal_to_the_prior():
-    import sys
-    from pathlib import Path
     from types import SimpleNamespace
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
     import pruner_agreement
 
     prior = torch.tensor([[COMPUTE, COMPUTE], [TIMESTEP, TIMESTEP], [TIMESTEP, COMPUTE]], dtype=torch.int8)
@@ -511,10 +496,7 @@ def test_output_search_on_recorded_windows_records_the_calls_it_used(tmp_path):
     """eval/search_static.py --objective output on one toy trajectory: whole compute steps shared by
     all branches at the budget, and the calls asked for (64) vs the windows it had (3) both recorded."""
     import json
-    import sys
-    from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
     import search_static
 
     _toy_policy_and_trajectories(tmp_path, [3, 4])

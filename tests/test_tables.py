@@ -1,12 +1,10 @@
 """eval/tables.py and eval/figures.py: the paired comparison with dense (Newcombe interval, sign test) and
 the data-efficiency series."""
-import sys
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "eval"))
 
 from tables import newcombe_paired, paired_vs_dense, sign_test_p  # noqa: E402
 

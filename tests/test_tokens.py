@@ -153,10 +153,7 @@ def test_token_plan_errors():
 
 def test_imagenet_cli_token_methods(tmp_path):
     import argparse
-    import sys
-    from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
     import imagenet
 
     base = dict(method="toca", sparsity=None, fresh_ratio=None, pruner=None, plan=None, fora_n=6,
