@@ -1,0 +1,2 @@
+"""Robot-suite code shared by the eval/ entry scripts: robosuite tasks, scripted experts, robomimic hdf5
+I/O, batched rollouts and recorded trajectories."""
