@@ -18,7 +18,6 @@ from typing import Any, Optional, Sequence, Union
 import numpy as np
 import torch
 import torch.nn as nn
-from diffusers.utils.torch_utils import randn_tensor
 
 from tts.io import atomic_path, checkpoint_pair
 from tts.spec import Target, register_model_adapter
@@ -148,6 +147,8 @@ class DiffusionTransformerLowdimPolicy(nn.Module):
         B = cond.shape[0]
         if isinstance(generator, (list, tuple)) and len(generator) != B:
             raise ValueError(f"got {len(generator)} generators for a batch of {B}")
+        from diffusers.utils.torch_utils import randn_tensor  # diffusers: an optional dependency
+
         x = randn_tensor((B, cfg.horizon, cfg.action_dim), generator=generator, device=self.device,
                          dtype=torch.float32)
         if self._fast is not None:
