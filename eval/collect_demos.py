@@ -20,8 +20,9 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, provenance, write_json  # noqa: E402
 
-from tts.adapters.robomimic_data import Demo, write_demos  # noqa: E402
-from tts.adapters.robosuite_tasks import EXPERTS, OBS_KEYS, TASKS, env_args, low_dim_obs, make_env, reset_env  # noqa: E402
+from robot_suite.experts import EXPERTS  # noqa: E402
+from robot_suite.robomimic import Demo, write_demos  # noqa: E402
+from robot_suite.tasks import OBS_KEYS, TASKS, env_args, low_dim_obs, make_env, reset_env  # noqa: E402
 
 
 def run_expert(env, task: str, seed: int, extra_steps: int = 10, noise: float = 0.0) -> tuple[bool, Demo]:

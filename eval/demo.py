@@ -2,7 +2,7 @@
 93%-sparse schedule (searched offline by eval/search_static.py), a few test episodes each; prints
 success and the policy-call speed-up measured in this process.
 
-    python eval/demo.py [--episodes 5] [--plan file:results/schedules/lift_steps_0.93.json] [--engine]
+    python eval/demo.py [--episodes 5] [--method file:results/schedules/lift_steps_0.93.json] [--engine]
 
 ``--engine`` instead runs the engine benchmark on a DP-sized transformer and a DiT-S/2 (random
 weights: speed and MACs only).
@@ -18,16 +18,16 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO  # noqa: E402
+from common.methods import ROBOT_KINDS, VOCABULARY, Method, install, parse_method  # noqa: E402
 from tts.io import checkpoint_pair  # noqa: E402
 
 DEFAULT_CKPT = REPO / "checkpoints" / "lift_dpt"
 
 
-def robot_demo(checkpoint: Path, episodes: int, plan_spec: str, seed: int) -> None:
-    import tts
-    from robot import parse_plan, run_wave
+def robot_demo(checkpoint: Path, episodes: int, method: Method, seed: int) -> None:
+    from robot_suite.rollout import run_wave
+    from robot_suite.tasks import make_env
     from tts.adapters.dp_policy import load_policy
-    from tts.adapters.robosuite_tasks import make_env
 
     policy = load_policy(checkpoint)
     envs = [make_env("lift") for _ in range(episodes)]
@@ -35,10 +35,9 @@ def robot_demo(checkpoint: Path, episodes: int, plan_spec: str, seed: int) -> No
     print(f"tts demo: {checkpoint.name} on robosuite Lift, {episodes} test episodes (seeds {seeds[0]}..{seeds[-1]}),"
           f" batch {episodes} (one env per episode)\n")
     results = {}
-    name = Path(plan_spec[5:]).stem if plan_spec.startswith("file:") else plan_spec
-    for label, spec in (("dense", "dense"), (f"tts {name}", plan_spec)):
-        directions, plan = parse_plan(spec)
-        with tts.accelerate(policy, directions, plan=plan) as acc:
+    dense = parse_method("dense", kinds=ROBOT_KINDS)
+    for label, m in (("dense", dense), (f"tts {method.label}", method)):
+        with install(policy, m) as acc:
             outcomes, lat = run_wave(policy, envs, seeds, "lift", torch.Generator().manual_seed(seed))
             s = acc.summary()
         dense_macs, realised = s.macs(s.calls[-1])
@@ -54,14 +53,14 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoint", type=Path, default=DEFAULT_CKPT)
     ap.add_argument("--episodes", type=int, default=5)
-    ap.add_argument("--plan", default="file:results/schedules/lift_steps_0.93.json",
-                    help="a static plan: file:<searched schedule JSON> (relative to the repo), uniform:<s>:<dir>, ...")
+    ap.add_argument("--method", default="file:results/schedules/lift_steps_0.93.json",
+                    help=f"a static plan or pruner (paths relative to the repo): {VOCABULARY}")
     ap.add_argument("--seed", type=int, default=100000)
     ap.add_argument("--engine", action="store_true", help="engine benchmark on random-weight models instead")
     args = ap.parse_args(argv)
     torch.manual_seed(0)
     if args.engine:
-        from bench import bench_dit, bench_dp
+        from common.engine_bench import bench_dit, bench_dp
 
         r = bench_dp(batch=1, reps=3, sparsity=0.93)
         print(f"DP-T batch 1, {r['plan']}: {r['speedup_vs_dense_fast_loop']:.2f}x vs dense (same loop), "
@@ -72,10 +71,12 @@ def main(argv=None) -> None:
         return
     if not checkpoint_pair(args.checkpoint)[1].exists():
         raise SystemExit(f"{args.checkpoint}.json not found: train it with eval/train_policy.py (see README)")
-    plan = args.plan
-    if plan.startswith("file:") and not Path(plan[5:]).is_absolute():
-        plan = f"file:{REPO / plan[5:]}"
-    robot_demo(args.checkpoint, args.episodes, plan, args.seed)
+    method = parse_method(args.method, kinds=ROBOT_KINDS)
+    if method.kind == "ddim" or method.kind == "dense":
+        raise SystemExit("--method: give a sparse plan or pruner to compare with dense")
+    if method.path is not None and not method.path.is_absolute():
+        method = parse_method(args.method.replace(str(method.path), str(REPO / method.path), 1), kinds=ROBOT_KINDS)
+    robot_demo(args.checkpoint, args.episodes, method, args.seed)
 
 
 if __name__ == "__main__":

@@ -26,8 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance  # noqa: E402
 
 from tts.adapters.dp_policy import DiffusionTransformerLowdimPolicy, PolicyConfig, save_policy  # noqa: E402
-from tts.adapters.robomimic_data import read_demos  # noqa: E402
-from tts.adapters.robosuite_tasks import OBS_KEYS  # noqa: E402
+from robot_suite.robomimic import read_demos  # noqa: E402
+from robot_suite.tasks import OBS_KEYS  # noqa: E402
 from tts.io import atomic_path  # noqa: E402
 
 

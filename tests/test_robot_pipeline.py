@@ -6,7 +6,7 @@ import torch
 import tts
 from conftest import randomize
 from tts.adapters.dp_policy import DiffusionTransformerLowdimPolicy, Normalizer, PolicyConfig, load_policy, save_policy
-from tts.adapters.robomimic_data import Demo, read_demos, read_env_args, write_demos
+from robot_suite.robomimic import Demo, read_demos, read_env_args, write_demos
 
 OBS_DIMS = {"object": 10, "robot0_eef_pos": 3, "robot0_eef_quat": 4, "robot0_gripper_qpos": 2}
 
@@ -148,7 +148,8 @@ def test_accelerated_policy_uses_predict_action_and_reset_as_boundaries():
 @pytest.mark.parametrize("task", ["lift", "can"])
 def test_env_short_rollout(task):
     pytest.importorskip("robosuite")
-    from tts.adapters.robosuite_tasks import EXPERTS, OBS_KEYS, low_dim_obs, make_env, reset_env
+    from robot_suite.experts import EXPERTS
+    from robot_suite.tasks import OBS_KEYS, low_dim_obs, make_env, reset_env
 
     env = make_env(task)
     raw = reset_env(env, 3)

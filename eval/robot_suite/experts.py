@@ -1,103 +1,13 @@
-"""robosuite 1.5 manipulation tasks with robomimic's low-dim observations, and scripted experts.
+"""Scripted experts for the robosuite tasks: waypoint controllers on the true object pose.
 
-Tasks (robomimic PH settings): Panda arm, OSC_POSE controller (7-D action: 6 delta pose in [-1, 1]
-+ gripper), 20 Hz control, horizon 400. Observations use robomimic's keys: ``object`` (robosuite's
-``object-state``), ``robot0_eef_pos``, ``robot0_eef_quat``, ``robot0_gripper_qpos``.
-
-The experts are waypoint controllers on the true object pose (robomimic's human datasets cannot be
-downloaded here). Their demonstrations are far more uniform than human data: say so next to every
-success rate obtained from them.
+robomimic's human datasets cannot be downloaded here, so demonstrations come from these experts. They
+are far more uniform than human data: say so next to every success rate obtained from them.
 """
 from __future__ import annotations
 
-import os
-from dataclasses import dataclass
-from typing import Optional
-
 import numpy as np
 
-__all__ = ["TASKS", "TaskConfig", "OBS_KEYS", "make_env", "reset_env", "low_dim_obs", "env_args", "LiftExpert", "CanExpert", "EXPERTS"]
-
-OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
-
-
-@dataclass(frozen=True)
-class TaskConfig:
-    env_name: str
-    horizon: int = 400
-
-
-TASKS = {
-    "lift": TaskConfig("Lift"),
-    "can": TaskConfig("PickPlaceCan"),
-    "square": TaskConfig("NutAssemblySquare"),
-}
-
-
-def _env_kwargs(task: str, render: bool) -> dict:
-    from robosuite.controllers import load_composite_controller_config
-
-    return dict(
-        robots="Panda",
-        controller_configs=load_composite_controller_config(controller="BASIC", robot="Panda"),
-        has_renderer=False,
-        has_offscreen_renderer=render,
-        use_camera_obs=False,
-        use_object_obs=True,
-        control_freq=20,
-        horizon=TASKS[task].horizon,
-        ignore_done=True,
-        reward_shaping=False,
-    )
-
-
-def make_env(task: str, seed: Optional[int] = None, render: bool = False):
-    """A robosuite env for ``task`` (lift / can / square); ``seed`` fixes object placements."""
-    if task not in TASKS:
-        raise ValueError(f"unknown task {task!r}; choose from {sorted(TASKS)}")
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    import logging
-
-    import robosuite as suite
-
-    for name in ("robosuite", "robosuite_logs"):  # controller-config chatter on every reset
-        logging.getLogger(name).setLevel(logging.ERROR)
-
-    env = suite.make(TASKS[task].env_name, seed=seed, **_env_kwargs(task, render))
-    return env
-
-
-def reset_env(env, seed: int) -> dict:
-    """Reset ``env`` to the episode of ``seed``: object placement and robot init noise both come
-    from ``env.rng``, and a hard reset rebuilds the placement sampler from it, so one env object
-    can replay any seed (make + reset costs seconds, a hard reset about 0.2 s)."""
-    import numpy as np
-
-    rng = np.random.default_rng(seed)
-    env.rng = rng
-    sampler = getattr(env, "placement_initializer", None)  # built once, keeps its own rng reference
-    stack = [sampler] if sampler is not None else []
-    while stack:
-        s = stack.pop()
-        s.rng = rng
-        stack.extend(getattr(s, "samplers", {}).values())
-    return env.reset()
-
-
-def env_args(task: str) -> dict:
-    """robomimic-style env metadata stored in datasets."""
-    kw = _env_kwargs(task, False)
-    kw["controller_configs"] = "BASIC (OSC_POSE arm), Panda"
-    return {"env_name": TASKS[task].env_name, "type": 1, "env_kwargs": kw, "env_version": "robosuite 1.5"}
-
-
-def low_dim_obs(raw: dict) -> dict[str, np.ndarray]:
-    return {
-        "object": np.asarray(raw["object-state"], dtype=np.float32),
-        "robot0_eef_pos": np.asarray(raw["robot0_eef_pos"], dtype=np.float32),
-        "robot0_eef_quat": np.asarray(raw["robot0_eef_quat"], dtype=np.float32),
-        "robot0_gripper_qpos": np.asarray(raw["robot0_gripper_qpos"], dtype=np.float32),
-    }
+__all__ = ["LiftExpert", "CanExpert", "EXPERTS"]
 
 
 def _toward(eef: np.ndarray, target: np.ndarray, gain: float = 10.0) -> np.ndarray:

@@ -1,0 +1,239 @@
+"""The one method vocabulary of both evaluation suites (``eval/robot.py --method``, ``eval/imagenet.py
+--method``), parsed here and nowhere else.
+
+==============================  ================================================================
+spec                            method
+==============================  ================================================================
+``dense``                       the model as is (an all-compute plan: bit-identical outputs)
+``ddim:K``                      fewer sampling steps: DDIM with K steps, dense
+``uniform:RHO:DIRECTION``       ``tts.plans.uniform``: RHO of the (step, branch) decisions reuse
+``every_n:N:DIRECTION``         ``tts.plans.every_n``: full compute every N steps (FORA: timestep)
+``file:SCHEDULE.json``          a searched static schedule (``eval/search_static.py``)
+``pruner:PATH``                 a trained pruner, argmax decisions (the paper)
+``pruner:PATH@RHO``             a trained pruner, exactly RHO of the decisions reused per sample
+``taylorseer:N:O``              every N-th step computed, an order-O Taylor forecast in between
+``toca:N[:RATIO]``, ``@RHO``    ToCa-style token refresh (image); RATIO of the tokens, or the ratio
+                                that reuses RHO of the branch MACs
+``duca:N[:RATIO]``, ``@RHO``    DuCa-style token refresh (image)
+``diffusers:fbc[:THRESHOLD]``   diffusers' First Block Cache (image); ``@RHO``: the threshold
+                                calibrated to sparsity RHO on calibration noise
+``diffusers:taylorseer:N:O``    diffusers' TaylorSeer cache (image)
+==============================  ================================================================
+
+``--forecast O`` (a separate option) adds a Taylor forecast of order O to timestep reuse of
+``file:`` and ``pruner:`` methods; it is part of the row label (``+taylorO``).
+"""
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+__all__ = ["Method", "parse_method", "install", "ROBOT_KINDS", "IMAGE_KINDS", "VOCABULARY"]
+
+VOCABULARY = ("dense | ddim:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | file:SCHEDULE.json | "
+              "pruner:PATH[@RHO] | taylorseer:N:O | toca:N[:RATIO][@RHO] | duca:N[:RATIO][@RHO] | "
+              "diffusers:fbc[:THRESHOLD][@RHO] | diffusers:taylorseer:N:O")
+ROBOT_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "file", "pruner", "taylorseer"})
+IMAGE_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "file", "pruner", "taylorseer", "toca", "duca",
+                         "diffusers"})
+_DIRS = ("forward", "timestep", "rollout")
+
+
+@dataclass(frozen=True)
+class Method:
+    """A parsed method spec. ``kind``: the word before the first colon; ``path``: the schedule or
+    pruner of ``file:`` / ``pruner:``; ``n``, ``order``, ``ratio``, ``threshold``, ``direction``: the
+    numbers and names of the spec; ``sparsity``: RHO (``uniform``, or an ``@RHO`` budget);
+    ``forecast``: the ``--forecast`` order applied to timestep reuse."""
+
+    spec: str
+    kind: str
+    path: Optional[Path] = None
+    sparsity: Optional[float] = None
+    direction: Optional[str] = None
+    n: Optional[int] = None
+    order: int = 0
+    ratio: Optional[float] = None
+    threshold: Optional[float] = None
+    cache: Optional[str] = None  # diffusers: "fbc" | "taylorseer"
+    forecast: int = 0
+
+    @property
+    def label(self) -> str:
+        """The row name of results: the spec with file paths reduced to their stem."""
+        if self.kind in ("file", "pruner"):
+            stem = self.path.name[:-5] if self.path.name.endswith(".json") else self.path.name
+            text = f"{self.kind}:{stem}" + ("" if self.sparsity is None else f"@{self.sparsity:g}")
+        else:
+            text = self.spec
+        return text + (f"+taylor{self.forecast}" if self.forecast else "")
+
+    @property
+    def slug(self) -> str:
+        """The label as a file-name part: ``pruner:lift_tts_0.93@0.93`` -> ``pruner-lift_tts_0.93-at0.93``."""
+        return re.sub(r"[^A-Za-z0-9._+-]+", "-", self.label.replace("@", "-at"))
+
+    @property
+    def engine(self) -> bool:
+        """True when the method runs in the tts engine (everything but ``ddim`` and ``diffusers:``)."""
+        return self.kind not in ("ddim", "diffusers")
+
+
+def _number(text: str, kind: type, what: str, spec: str):
+    try:
+        value = kind(text)
+    except ValueError:
+        raise ValueError(f"method {spec!r}: {what} must be {'an integer' if kind is int else 'a number'}, "
+                         f"got {text!r}") from None
+    return value
+
+
+def _direction(text: str, spec: str) -> str:
+    if text not in _DIRS:
+        raise ValueError(f"method {spec!r}: unknown direction {text!r}; choose one of {_DIRS}")
+    return text
+
+
+def _budget(spec: str) -> tuple[str, Optional[float]]:
+    if "@" not in spec:
+        return spec, None
+    body, rho = spec.rsplit("@", 1)
+    value = _number(rho, float, "the budget after '@'", spec)
+    if not 0.0 <= value < 1.0:
+        raise ValueError(f"method {spec!r}: the sparsity after '@' must be in [0, 1), got {value}")
+    return body, value
+
+
+def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0) -> Method:
+    """Parse ``spec`` (see the module docstring); ``kinds`` limits what the calling suite runs."""
+    spec = spec.strip()
+    kind = spec.split(":", 1)[0]
+    if kind not in IMAGE_KINDS | ROBOT_KINDS:
+        raise ValueError(f"unknown method {spec!r}; the vocabulary is {VOCABULARY}")
+    if kind not in kinds:
+        raise ValueError(f"method {kind!r} is not available in this suite (available: {', '.join(sorted(kinds))})")
+    if forecast and kind not in ("file", "pruner"):
+        raise ValueError(f"--forecast applies to file: and pruner: methods (taylorseer:N:O has its own order), "
+                         f"not to {spec!r}")
+    body, rho = _budget(spec)
+    if rho is not None and kind not in ("pruner", "toca", "duca", "diffusers"):
+        raise ValueError(f"method {spec!r}: an '@RHO' budget applies to pruner:, toca:, duca: and diffusers:fbc")
+    parts = body.split(":")
+    bad = ValueError(f"malformed method {spec!r}; the vocabulary is {VOCABULARY}")
+    if kind == "dense":
+        if len(parts) != 1:
+            raise bad
+        return Method(spec, kind)
+    if kind == "ddim":
+        if len(parts) != 2:
+            raise bad
+        k = _number(parts[1], int, "the number of steps", spec)
+        if k < 1:
+            raise ValueError(f"method {spec!r}: DDIM needs at least 1 step")
+        return Method(spec, kind, n=k)
+    if kind in ("uniform", "every_n"):
+        if len(parts) != 3:
+            raise bad
+        direction = _direction(parts[2], spec)
+        if kind == "uniform":
+            s = _number(parts[1], float, "the sparsity", spec)
+            if not 0.0 <= s < 1.0:
+                raise ValueError(f"method {spec!r}: sparsity must be in [0, 1), got {s}")
+            return Method(spec, kind, sparsity=s, direction=direction)
+        n = _number(parts[1], int, "the interval", spec)
+        if n < 1:
+            raise ValueError(f"method {spec!r}: the interval must be >= 1")
+        return Method(spec, kind, n=n, direction=direction)
+    if kind in ("file", "pruner"):
+        path = body.split(":", 1)[1] if ":" in body else ""
+        if not path:
+            raise bad
+        return Method(spec, kind, path=Path(path), sparsity=rho, forecast=forecast)
+    if kind == "taylorseer":
+        if len(parts) != 3:
+            raise bad
+        n, o = _number(parts[1], int, "the interval", spec), _number(parts[2], int, "the order", spec)
+        if n < 1 or o < 1:
+            raise ValueError(f"method {spec!r}: interval and order must be >= 1")
+        return Method(spec, kind, n=n, order=o, direction="timestep")
+    if kind in ("toca", "duca"):
+        if len(parts) not in (2, 3):
+            raise bad
+        n = _number(parts[1], int, "the interval", spec)
+        ratio = _number(parts[2], float, "the fresh-token ratio", spec) if len(parts) == 3 else None
+        if (ratio is None) == (rho is None):
+            raise ValueError(f"method {spec!r} needs exactly one of a fresh-token ratio (:{kind}:N:RATIO) and a "
+                             f"budget ({kind}:N@RHO)")
+        return Method(spec, kind, n=n, ratio=ratio, sparsity=rho, direction="timestep")
+    # diffusers:fbc[:THRESHOLD][@RHO] | diffusers:taylorseer:N:O
+    cache = parts[1] if len(parts) > 1 else ""
+    if cache == "fbc" and len(parts) in (2, 3):
+        threshold = _number(parts[2], float, "the threshold", spec) if len(parts) == 3 else None
+        if (threshold is None) == (rho is None):
+            raise ValueError(f"method {spec!r} needs exactly one of a threshold (diffusers:fbc:T) and a budget "
+                             "(diffusers:fbc@RHO)")
+        return Method(spec, kind, cache="fbc", threshold=threshold, sparsity=rho)
+    if cache == "taylorseer" and len(parts) == 4 and rho is None:
+        n, o = _number(parts[2], int, "the interval", spec), _number(parts[3], int, "the order", spec)
+        return Method(spec, kind, cache="taylorseer", n=n, order=o)
+    raise bad
+
+
+def read_schedule(path: Path) -> tuple[tuple[str, ...], Any]:
+    """A searched schedule file -> (its directions, its plan)."""
+    import tts
+
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no schedule at {path} (write one with eval/search_static.py)")
+    doc = json.loads(Path(path).read_text())
+    return tuple(doc["directions"]), tts.plans.from_tensor(doc["grid"])
+
+
+def install(model: Any, method: Method, *, parallel: Any = "auto", memory_width: Optional[int] = None):
+    """``tts.accelerate`` for an engine method (every kind but ``ddim`` and ``diffusers``; ``toca`` /
+    ``duca`` with a ratio: a budget needs the backbone's MLP share, see the image suite). ``dense``
+    installs an all-compute plan (outputs bit-identical; the summary gives MACs)."""
+    import tts
+
+    if not method.engine:
+        raise ValueError(f"{method.spec} does not run in the tts engine")
+    if method.kind == "dense":
+        return tts.accelerate(model, _DIRS if _rollout_ok(model) else _DIRS[:2], plan=tts.plans.dense())
+    if method.kind == "uniform":
+        return tts.accelerate(model, (method.direction,), plan=tts.plans.uniform(method.sparsity, method.direction))
+    if method.kind == "every_n":
+        return tts.accelerate(model, (method.direction,), plan=tts.plans.every_n(method.n, method.direction))
+    if method.kind == "taylorseer":
+        return tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(method.n, "timestep"),
+                              forecast=method.order)
+    if method.kind in ("toca", "duca"):
+        if method.ratio is None:
+            raise ValueError(f"{method.spec}: resolve the budget to a fresh-token ratio first")
+        make = tts.tokens.toca if method.kind == "toca" else tts.tokens.duca
+        return tts.accelerate(model, ("timestep",), plan=make(method.n, method.ratio))
+    if method.kind == "file":
+        directions, plan = read_schedule(method.path)
+        return tts.accelerate(model, directions, plan=plan,
+                              forecast=method.forecast if "timestep" in directions else 0)
+    pruner = tts.load_pruner(method.path)
+    trained = int(getattr(pruner, "metadata", {}).get("forecast", 0) or 0)
+    if trained != method.forecast:
+        raise ValueError(f"{method.path} was trained with --forecast {trained}; evaluate it with the same")
+    if memory_width is not None and pruner.config.memory_dim != memory_width:
+        raise ValueError(f"pruner {method.path} reads condition memory of width {pruner.config.memory_dim}, this "
+                         f"model's has width {memory_width}: it belongs to another model")
+    return tts.accelerate(model, pruner.config.directions, pruner=pruner, sparsity=method.sparsity,
+                          forecast=method.forecast, parallel=parallel)
+
+
+def _rollout_ok(model: Any) -> bool:
+    """Whether the rollout direction applies (robot policies), i.e. the model is not an image generator."""
+    import tts
+
+    try:
+        return tts.resolve_target(model).supports_rollout is not False
+    except (TypeError, ValueError):
+        return True

@@ -1,0 +1,74 @@
+"""Batched rollouts of a policy in robosuite: one episode per environment, observations stacked into
+one policy call per step of the action chunk (batch = number of environments)."""
+from __future__ import annotations
+
+import collections
+import time
+from typing import Optional
+
+import numpy as np
+import torch
+
+from .tasks import OBS_KEYS, TASKS, low_dim_obs, reset_env
+
+__all__ = ["noise_seed", "run_wave"]
+
+
+def noise_seed(episode_seed: int, call: int) -> int:
+    """Seed of the sampling noise of one policy call of one episode (recorded trajectories)."""
+    return episode_seed * 1000 + call
+
+
+def run_wave(policy, envs, seeds, task, generator, record: bool = False,
+             horizon: Optional[int] = None) -> tuple[list[dict], list[float]]:
+    """Run one episode per env in lockstep; returns per-episode outcomes and per-call latencies.
+
+    ``record=True``: every env gets its own noise generator per call (seeded by :func:`noise_seed`,
+    so a sample's noise does not depend on the batch) and each outcome carries its trajectory: the
+    obs window fed to the policy [R, To, obs_dim], the dense ``action_pred`` [R, H, Da], the
+    executed chunk [R, Ta, Da] and the noise seeds [R] (R = calls until success or the horizon).
+    """
+    cfg = policy.cfg
+    n = len(seeds)
+    policy.reset()
+    raws = [reset_env(env, s) for env, s in zip(envs[:n], seeds)]
+    hist = [collections.deque([low_dim_obs(r)] * cfg.n_obs_steps, maxlen=cfg.n_obs_steps) for r in raws]
+    success = [False] * n
+    steps = [0] * n
+    traj = [{"obs": [], "action_pred": [], "action": [], "noise_seed": []} for _ in range(n)]
+    latencies = []
+    horizon = horizon or TASKS[task].horizon
+    t = 0
+    call = 0
+    while t < horizon and not all(success):
+        obs = {k: np.stack([np.stack([h[j][k] for j in range(cfg.n_obs_steps)]) for h in hist]) for k in OBS_KEYS}
+        gen = [torch.Generator().manual_seed(noise_seed(s, call)) for s in seeds] if record else generator
+        t0 = time.perf_counter()
+        out = policy.predict_action(obs, generator=gen)
+        latencies.append(time.perf_counter() - t0)
+        actions = out["action"].cpu().numpy()
+        if record:
+            window = policy.obs_vector(obs).cpu().numpy()
+            for e in range(n):
+                if not success[e]:
+                    for key, val in (("obs", window[e]), ("action_pred", out["action_pred"][e].cpu().numpy()),
+                                     ("action", actions[e]), ("noise_seed", noise_seed(seeds[e], call))):
+                        traj[e][key].append(val)
+        for a_i in range(actions.shape[1]):
+            for e in range(n):
+                if success[e]:
+                    continue  # finished envs keep their last observation (batch size stays constant)
+                raw, _, _, _ = envs[e].step(actions[e, a_i])
+                hist[e].append(low_dim_obs(raw))
+                steps[e] += 1
+                if envs[e]._check_success():
+                    success[e] = True
+            t += 1
+            if t >= horizon or all(success):
+                break
+        call += 1
+    outcomes = [{"seed": s, "success": bool(ok), "env_steps": st} for s, ok, st in zip(seeds, success, steps)]
+    if record:
+        for o, tr in zip(outcomes, traj):
+            o["trajectory"] = {k: np.stack(v) for k, v in tr.items()}
+    return outcomes, latencies
