@@ -22,10 +22,10 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance, parse_args  # noqa: E402
-from robot import run_wave  # noqa: E402
+from robot_suite.rollout import run_wave  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
-from tts.adapters.robosuite_tasks import TASKS, make_env  # noqa: E402
+from robot_suite.tasks import TASKS, make_env  # noqa: E402
 from tts.io import atomic_path  # noqa: E402
 
 

@@ -1,9 +1,9 @@
 """Policy-call latency of an accelerated policy against dense, measured in one process.
 
-    python eval/latency.py --task lift --checkpoint checkpoints/lift_dpt --pruner checkpoints/lift_pruner \
-        --trajectories data/trajectories/lift.pt --batch 1 28 [--sparsity 0.93]
+    python eval/latency.py --task lift --checkpoint checkpoints/lift_dpt \
+        --method pruner:checkpoints/pruners/lift_tts_0.93@0.93 --trajectories data/trajectories/lift.pt --batch 1 28
 
-Protocol (spec §6, made robust): real observation windows from recorded dense trajectories. Per
+``--method``: the vocabulary of eval/robot.py (eval/common/methods.py). Protocol: real observation windows from recorded dense trajectories. Per
 trial and batch size B, take B episodes; ``reset()``; frame 0 (the dense call that fills the rollout
 cache, untimed); then time the calls on frames 1..``--frames``. Dense is the untouched policy (its own
 fast loop: batched condition encoder, precomputed DDPM coefficients), timed in the same trials,
@@ -26,7 +26,8 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from collect_trajectories import load_trajectories  # noqa: E402
 from common import REPO, provenance, write_json, parse_args  # noqa: E402
-from robot import accelerate, method_label  # noqa: E402
+from common import methods  # noqa: E402
+from common.methods import ROBOT_KINDS, VOCABULARY, parse_method  # noqa: E402
 from train_pruner import obs_dict  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
@@ -66,10 +67,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--task", required=True)
     ap.add_argument("--checkpoint", type=Path, required=True)
     ap.add_argument("--trajectories", type=Path, required=True, help="observation windows (eval/collect_trajectories.py)")
-    ap.add_argument("--method", choices=["static", "tts"], default="tts")
-    ap.add_argument("--plan", default="uniform:0.93:timestep", help="for --method static")
-    ap.add_argument("--pruner", type=Path, default=None)
-    ap.add_argument("--sparsity", type=float, default=None, help="tts exact-budget mode")
+    ap.add_argument("--method", required=True, help=f"one of: {VOCABULARY}")
     ap.add_argument("--parallel", choices=["auto", "on", "off"], default="auto",
                     help="pruner overlap with step 0 (worker thread on CPU; auto: only with idle cores)")
     ap.add_argument("--forecast", type=int, default=0, help="TaylorSeer-style forecast order for timestep reuse")
@@ -79,14 +77,17 @@ def main(argv=None) -> dict:
     ap.add_argument("--first-episode", type=int, default=96, help="episodes used (default: past the pruner's training set)")
     ap.add_argument("--out", type=Path, default=None)
     args = parse_args(ap, argv)
-    label = method_label(args)
+    method = parse_method(args.method, kinds=ROBOT_KINDS, forecast=args.forecast)
+    if not method.engine:
+        ap.error(f"{args.method}: latency.py times tts methods against dense (fewer-step samplers: eval/robot.py)")
+    label = method.label
     suffix = "" if args.parallel == "auto" else f"_parallel-{args.parallel}"
-    out_path = args.out or REPO / "results" / "robot" / f"latency_{args.task}_{label}{suffix}.json"
+    out_path = args.out or REPO / "results" / "robot" / f"latency_{args.task}_{method.slug}{suffix}.json"
     episodes, _ = load_trajectories(args.trajectories)
     pool = episodes[args.first_episode:] or episodes
     dense = load_policy(args.checkpoint)
     fast = load_policy(args.checkpoint)
-    acc = accelerate(fast, args)
+    acc = methods.install(fast, method, parallel={"auto": "auto", "on": True, "off": False}[args.parallel])
     rows = []
     for B in args.batch:
         eps = [pool[i % len(pool)] for i in range(B)]

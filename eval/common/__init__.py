@@ -12,7 +12,7 @@ from typing import Any
 
 from tts.io import atomic_path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def git_sha() -> str:
