@@ -1,33 +1,17 @@
 """Class-conditional DiT sampling, dense or accelerated, into an ADM-compatible ``.npz`` (+ FID/sFID).
 
-    accelerate launch [--num_processes N] eval/imagenet.py --model PATH \
-        --method dense|fora|taylorseer|toca|duca|uniform|static|tts|diffusers_fbc|diffusers_taylorseer \
-        [--sparsity 0.8] [--steps 50] [--cfg 1.5] [--num-samples 2000] [--out samples.npz] [--pruner PATH] \
-        [--fora-n 5] [--ref REF] [--seed 0] [--batch 64]
+    accelerate launch [--num_processes N] eval/imagenet.py --model PATH --method METHOD \
+        [--steps 50] [--cfg 1.5] [--num-samples 2000] [--out samples.npz] [--ref REF] [--seed 0] [--batch 64]
 
-Methods (all but ``diffusers_*`` in the tts engine; ``dense`` is the untouched model):
-  dense    the model as is
-  fora     ``tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(N, "timestep"))`` (FORA-style)
-  taylorseer  FORA's interval with an order-``--taylor-order`` Taylor forecast of each reused branch
-           (``forecast=O``, TaylorSeer-style)
-  toca     ToCa-style token-wise refresh (:mod:`tts.tokens`): full compute every ``--fora-n`` steps, in
-           between the MLP recomputes ``--fresh-ratio`` of its tokens (highest attention received at the
-           last full step, plus staleness), attention reused; with ``--sparsity`` instead of
-           ``--fresh-ratio``, the ratio that computes ``1 - sparsity`` of the branch MACs
-  duca     DuCa-style: as toca, but tokens chosen by dissimilarity (no attention maps) and the steps in
-           between alternate aggressive (reuse all) / conservative (token refresh)
-  uniform  ``tts.plans.uniform(sparsity, "timestep")``: ``--sparsity`` of the (step, branch) decisions reuse
-  static   a searched schedule (``--plan``, eval/search_static.py --model): BAC-style
-  diffusers_fbc  diffusers' First Block Cache on the model converted to diffusers' DiTTransformer2DModel
-           (tts.adapters.dit_diffusers, same function): ``--fbc-threshold``, or with ``--sparsity`` the
-           threshold whose sparsity on a calibration batch (``--calib-seed``, never the evaluation's) is
-           closest (its ceiling is (depth - 1) / depth: the first block always computes)
-  diffusers_taylorseer  diffusers' TaylorSeer cache on the converted model, every block's attn1 and ff:
-           full steps 0, then every ``--fora-n``-th from step 2 (diffusers' warm-up of 1 step),
-           order ``--taylor-order``
-  tts      a learned pruner (``--pruner``, see tts.Pruner): argmax decisions, or with ``--sparsity`` exactly
-           that fraction reused per sample (exact-budget mode); it reads the DiT's condition memory
-           (:meth:`DiT.condition_memory`, encoded once per sampling call)
+``--method`` takes the vocabulary of both suites (eval/common/methods.py), e.g. ``dense``, ``ddim:10``,
+``every_n:5:timestep`` (FORA), ``taylorseer:5:2``, ``toca:6@0.8`` (ToCa-style token refresh at 80% of
+the branch MACs reused), ``duca:6@0.8``, ``uniform:0.8:timestep``, ``file:SCHEDULE.json`` (a searched
+schedule, eval/search_static.py --model), ``pruner:PATH@0.8`` (a learned pruner, exact budget; it reads
+the DiT's condition memory, encoded once per sampling call), ``diffusers:fbc@0.8`` (diffusers' First
+Block Cache on the model converted to ``DiTTransformer2DModel``, its threshold calibrated to that
+sparsity on ``--calib-seed`` noise; its ceiling is (depth - 1) / depth), ``diffusers:taylorseer:5:2``.
+All but ``diffusers:`` run in the tts engine; ``dense`` is the untouched model; ``ddim:K`` samples the
+untouched model with K steps instead of ``--steps``.
 
 Sampling (:func:`tts.adapters.dit.sample_dit`): DDIM (eta 0) with DiT's linear schedule, batched
 classifier-free guidance [cond; uncond] on eps. Sample ``i`` has class ``i % num_classes`` and initial
@@ -53,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import os
 import sys
@@ -68,220 +51,22 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import parse_args, provenance, write_json  # noqa: E402
 
-import tts  # noqa: E402
-from tts.adapters.dit import DiT, load_dit, sample_dit  # noqa: E402
-from tts.adapters.dit_diffusers import DiffusersCache, DiffusersDiT, calibrate_fbc_threshold  # noqa: E402
+from common.methods import IMAGE_KINDS, VOCABULARY, Method, parse_method  # noqa: E402
+from image_suite.sampling import (SD_VAE_SCALE, Meter, build_accelerator, dense_macs_per_image,  # noqa: E402
+                                  describe, index_seed, load_vae, sample_noise, sampler_of, shard, to_uint8_rgb)
+from tts.adapters.dit import load_dit, sample_dit  # noqa: E402
 from tts.io import atomic_path  # noqa: E402
 
-METHODS = ("dense", "fora", "taylorseer", "toca", "duca", "uniform", "static", "tts", "diffusers_fbc",
-           "diffusers_taylorseer")
-CALIBRATION_IMAGES = 32
-SD_VAE_SCALE = 0.18215  # latent scale of the Stable Diffusion VAE that DiT was trained with
 
-
-# ------------------------------------------------------------------------------------------- helpers
-def shard(num_samples: int, num_processes: int, rank: int) -> range:
-    """The contiguous block of sample indices of process ``rank`` (sizes differ by at most one)."""
-    return range(rank * num_samples // num_processes, (rank + 1) * num_samples // num_processes)
-
-
-def index_seed(seed: int, index: int) -> int:
-    """Seed of sample ``index``'s initial noise: a hash of (seed, index), independent of the process count."""
-    return int(np.random.SeedSequence([seed, index]).generate_state(1, np.uint64)[0])
-
-
-def sample_noise(seed: int, indices: Sequence[int], shape: tuple[int, ...]) -> torch.Tensor:
-    """Initial noise [len(indices), *shape], each row from its own (seed, index) generator."""
-    return torch.stack([torch.randn(shape, generator=torch.Generator().manual_seed(index_seed(seed, i)))
-                        for i in indices])
-
-
-def to_uint8_rgb(images: torch.Tensor) -> torch.Tensor:
-    """Model-space images [B, C, H, W] in [-1, 1] (C = 1 or 3) -> uint8 RGB [B, H, W, 3]."""
-    if images.dim() != 4 or images.shape[1] not in (1, 3):
-        raise ValueError(f"expected images [B, 1 or 3, H, W] in [-1, 1], got {tuple(images.shape)} "
-                         "(a latent model needs --vae to decode its samples)")
-    x = ((images.float() + 1.0) * 127.5).round().clamp(0, 255).to(torch.uint8)
-    if x.shape[1] == 1:
-        x = x.expand(-1, 3, -1, -1)
-    return x.permute(0, 2, 3, 1).contiguous().cpu()
-
-
-def load_vae(path: str, device: torch.device):
-    """A diffusers AutoencoderKL from a local folder (never downloaded)."""
-    from diffusers import AutoencoderKL
-
-    p = Path(path)
-    if not (p / "config.json").is_file():
-        raise FileNotFoundError(
-            f"no diffusers VAE at {p}: download stabilityai/sd-vae-ft-ema (or sd-vae-ft-mse) as a diffusers "
-            "folder (config.json + diffusion_pytorch_model.safetensors) and pass --vae FOLDER")
-    return AutoencoderKL.from_pretrained(str(p), local_files_only=True).to(device).eval()
-
-
-def build_accelerator(model: DiT, args: argparse.Namespace) -> Any:
-    """The tts accelerator of ``--method`` (None for dense); for ``diffusers_*`` a
-    :class:`~tts.adapters.dit_diffusers.DiffusersCache` on a converted copy (sample ``acc.model``)."""
-    if args.method == "dense":
-        return None
-    if args.method.startswith("diffusers_"):
-        return build_diffusers_cache(model, args)
-    if args.method == "fora":
-        return tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(args.fora_n, "timestep"))
-    if args.method == "taylorseer":  # FORA's interval with an order-O Taylor forecast of every reused branch
-        return tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(args.fora_n, "timestep"),
-                              forecast=args.taylor_order)
-    if args.method in ("toca", "duca"):
-        make = tts.tokens.toca if args.method == "toca" else tts.tokens.duca
-        return tts.accelerate(model, ("timestep",), plan=make(args.fora_n, fresh_ratio(model, args)))
-    forecast = getattr(args, "forecast", 0)
-    if args.method == "static":  # a searched schedule (eval/search_static.py --model ...)
-        doc = json.loads(Path(args.plan).read_text())
-        return tts.accelerate(model, tuple(doc["directions"]), plan=tts.plans.from_tensor(doc["grid"]),
-                              forecast=forecast)
-    if args.method == "uniform":
-        return tts.accelerate(model, ("timestep",), plan=tts.plans.uniform(args.sparsity, "timestep"))
-    pruner = tts.load_pruner(args.pruner)
-    if pruner.config.memory_dim != model.config.hidden_size:
-        raise ValueError(f"pruner {args.pruner} reads memory of width {pruner.config.memory_dim}, this DiT's "
-                         f"condition memory has width {model.config.hidden_size}: it belongs to another model")
-    return tts.accelerate(model, pruner.config.directions, pruner=pruner, sparsity=args.sparsity, forecast=forecast)
-
-
-def build_diffusers_cache(model: DiT, args: argparse.Namespace) -> DiffusersCache:
-    wrapped = model if isinstance(model, DiffusersDiT) else DiffusersDiT.from_dit(model)
-    if args.method == "diffusers_taylorseer":
-        return DiffusersCache(wrapped, "taylorseer", interval=args.fora_n, order=args.taylor_order, warmup=1)
-    threshold = args.fbc_threshold
-    if threshold is None:
-        idx = range(CALIBRATION_IMAGES)
-        labels = torch.tensor([i % model.config.num_classes for i in idx], device=model.pos_embed.device)
-        noise = sample_noise(args.calib_seed, idx, (model.in_channels, model.config.input_size,
-                                                   model.config.input_size))
-        threshold, reached = calibrate_fbc_threshold(wrapped, args.sparsity, labels, noise, steps=args.steps,
-                                                     cfg_scale=args.cfg)
-        args.fbc_calibration = {"threshold": threshold, "sparsity": reached, "seed": args.calib_seed,
-                                "images": CALIBRATION_IMAGES}
-    return DiffusersCache(wrapped, "fbc", threshold=threshold)
-
-
-def is_diffusers_cache(acc: Any) -> bool:
-    return isinstance(acc, DiffusersCache)
-
-
-def sampler_of(model: DiT, acc: Any):
-    """The module to sample: the converted copy for a diffusers cache, else ``model``."""
-    return acc.model if is_diffusers_cache(acc) else model
-
-
-def describe(acc: Any) -> str:
-    return acc.describe() if is_diffusers_cache(acc) else acc.plan.describe()
-
-
-def last_call_counts(acc: Any) -> dict[str, float]:
-    """decisions, reused, macs_dense, macs_realised, macs_pruner of ``acc``'s last sampling call."""
-    if is_diffusers_cache(acc):
-        call = acc.last_call()
-        decisions = 2 * acc.depth * call.forwards
-        return dict(decisions=decisions, reused=decisions - call.computed,
-                    macs_dense=call.macs_dense(), macs_realised=call.macs, macs_pruner=0.0)
-    summary = acc.summary()
-    call = summary.calls[-1]
-    d = call.decisions()
-    dense, realised = summary.macs(call)
-    return dict(decisions=d.numel(), reused=int((d != tts.plans.COMPUTE).sum()), macs_dense=dense,
-                macs_realised=realised, macs_pruner=call.pruner_macs)
-
-
-def mlp_share(model: DiT) -> float:
-    """Share of a DiT block's branch MACs in its MLP (the token-wise branch): per token the MLP costs
-    2 * D * mlp_hidden, attention 4 * D^2 (qkv, proj) + 2 * N * D (scores, weighted sum)."""
-    cfg = model.config
-    D, N = cfg.hidden_size, (cfg.input_size // cfg.patch_size) ** 2
-    mlp = 2 * D * int(D * cfg.mlp_ratio)
-    return mlp / (mlp + 4 * D * D + 2 * N * D)
-
-
-def fresh_ratio(model: DiT, args: argparse.Namespace) -> float:
-    """``--fresh-ratio``, or the one that matches ``--sparsity`` (of the branch MACs) at ``--fora-n``."""
-    if args.fresh_ratio is not None:
-        return args.fresh_ratio
-    return tts.tokens.fresh_ratio_for(args.sparsity, args.fora_n, mlp_share(model), alternate=args.method == "duca")
-
-
-def check_args(args: argparse.Namespace) -> None:
-    if args.method == "uniform" and args.sparsity is None:
-        raise ValueError("--method uniform needs --sparsity")
-    if args.method == "tts" and not args.pruner:
-        raise ValueError("--method tts needs --pruner PATH (a trained tts.Pruner)")
-    if args.method == "static" and not args.plan:
-        raise ValueError("--method static needs --plan SCHEDULE.json")
-    if args.method in ("toca", "duca") and (args.sparsity is None) == (args.fresh_ratio is None):
-        raise ValueError(f"--method {args.method} needs exactly one of --fresh-ratio and --sparsity")
-    if args.fresh_ratio is not None and args.method not in ("toca", "duca"):
-        raise ValueError("--fresh-ratio is only used by --method toca / duca")
-    fbc_threshold = getattr(args, "fbc_threshold", None)
-    if args.method == "diffusers_fbc" and (args.sparsity is None) == (fbc_threshold is None):
-        raise ValueError("--method diffusers_fbc needs exactly one of --fbc-threshold and --sparsity")
-    if fbc_threshold is not None and args.method != "diffusers_fbc":
-        raise ValueError("--fbc-threshold is only used by --method diffusers_fbc")
-    if args.method == "diffusers_fbc" and args.sparsity is not None and args.calib_seed == args.seed:
+def check_args(args: argparse.Namespace, method: Method) -> None:
+    if method.kind == "diffusers" and method.cache == "fbc" and method.sparsity is not None \
+            and args.calib_seed == args.seed:
         raise ValueError("--calib-seed must differ from --seed (never calibrate on the evaluation's noise)")
-    if args.method in ("dense", "fora", "taylorseer", "static", "diffusers_taylorseer") and args.sparsity is not None:
-        raise ValueError(f"--sparsity does not apply to --method {args.method}")
-    if args.pruner and args.method != "tts":
-        raise ValueError("--pruner is only used by --method tts")
-    if getattr(args, "forecast", 0) and args.method not in ("static", "tts"):
-        raise ValueError("--forecast applies to --method static / tts (taylorseer has --taylor-order)")
-    if args.method in ("fora", "taylorseer", "toca", "duca", "diffusers_taylorseer") and args.fora_n < 1:
-        raise ValueError("--fora-n must be >= 1")
     for name in ("num_samples", "batch", "steps"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
     if args.out.suffix != ".npz":
         raise ValueError(f"--out must end with .npz, got {args.out}")
-
-
-class Meter:
-    """Per-process totals of decisions and MACs over the sampling calls of an accelerator."""
-
-    def __init__(self) -> None:
-        self.images = 0
-        self.calls = 0
-        self.decisions = 0
-        self.reused = 0
-        self.macs_dense = 0.0
-        self.macs_realised = 0.0
-        self.macs_pruner = 0.0
-        self.sample_s = 0.0
-
-    def add_call(self, acc: Optional["tts.Accelerator"], images: int, seconds: float) -> None:
-        self.images += images
-        self.calls += 1
-        self.sample_s += seconds
-        if acc is None:
-            return
-        c = last_call_counts(acc)
-        self.decisions += c["decisions"]
-        self.reused += c["reused"]
-        self.macs_dense += c["macs_dense"]
-        self.macs_realised += c["macs_realised"]
-        self.macs_pruner += c["macs_pruner"]
-
-
-def dense_macs_per_image(model: DiT, steps: int, cfg: float) -> float:
-    """MACs of one image's sampling call with the untouched model (rows x steps forwards, embedders
-    excluded as in the engine's count), by torch's FlopCounterMode."""
-    from tts.flops import flop_counter_macs
-
-    p = model.pos_embed
-    size = model.config.input_size
-    x = torch.zeros(1, model.in_channels, size, size, device=p.device, dtype=p.dtype)
-    t = torch.zeros(1, dtype=torch.long, device=p.device)
-    c = torch.zeros(1, model.config.hidden_size, device=p.device, dtype=p.dtype)
-    with torch.no_grad():
-        one = flop_counter_macs(lambda: model(x, t, t, c=c))
-    return float(one * steps * (2 if cfg != 1.0 else 1))
 
 
 # ---------------------------------------------------------------------------------------------- main
@@ -292,20 +77,11 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     ap.add_argument("--config", default=None, help="DIT_CONFIGS name for an official .pt (e.g. DiT-XL/2); default: "
                                                     "inferred from the tensor shapes")
     ap.add_argument("--vae", default=None, help="local diffusers AutoencoderKL folder (latent DiTs)")
-    ap.add_argument("--method", choices=METHODS, default="dense")
-    ap.add_argument("--sparsity", type=float, default=None,
-                    help="uniform: fraction of reused decisions; tts: exact-budget mode (default: argmax)")
-    ap.add_argument("--pruner", default=None, help="trained tts.Pruner (<path>.safetensors + .json), --method tts")
-    ap.add_argument("--fora-n", type=int, default=5, help="fora / taylorseer / toca / duca: compute every N-th step")
-    ap.add_argument("--fresh-ratio", type=float, default=None,
-                    help="toca / duca: fraction of MLP tokens recomputed at a refresh step (or give --sparsity)")
-    ap.add_argument("--taylor-order", type=int, default=1, help="taylorseer / diffusers_taylorseer: forecast order O")
-    ap.add_argument("--fbc-threshold", type=float, default=None, help="diffusers_fbc: FBCache threshold")
+    ap.add_argument("--method", default="dense", help=f"one of: {VOCABULARY}")
     ap.add_argument("--calib-seed", type=int, default=1,
-                    help="diffusers_fbc with --sparsity: noise seed of the threshold calibration batch")
-    ap.add_argument("--plan", default=None, help="static: a searched schedule JSON (eval/search_static.py)")
+                    help="diffusers:fbc@RHO: noise seed of the threshold calibration batch")
     ap.add_argument("--forecast", type=int, default=0,
-                    help="static / tts: TaylorSeer-style forecast of order O for timestep reuse (0 = plain reuse)")
+                    help="file: / pruner: methods: Taylor forecast of order O for timestep reuse (0 = plain reuse)")
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--cfg", type=float, default=1.5, help="classifier-free guidance scale (1 = none)")
     ap.add_argument("--scheduler", choices=("ddim", "ddpm"), default="ddim",
@@ -321,7 +97,10 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     ap.add_argument("--cpu", action="store_true", help="run on CPU even if CUDA is available")
     ap.add_argument("--no-progress", action="store_true")
     args = parse_args(ap, argv)
-    check_args(args)
+    method = parse_method(args.method, kinds=IMAGE_KINDS, forecast=args.forecast)
+    if method.kind == "ddim":
+        args.steps = method.n
+    check_args(args, method)
 
     model = load_dit(args.model, config=args.config)  # clear FileNotFoundError before any process group starts
     if args.vae is None and getattr(model, "vae_path", None):  # a DiTPipeline folder with its vae/
@@ -338,7 +117,9 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     device = accelerator.device
     model = model.to(device)
     vae = load_vae(args.vae, device) if args.vae else None
-    acc = build_accelerator(model, args)
+    calibration: dict[str, Any] = {}
+    acc = build_accelerator(model, method, steps=args.steps, cfg=args.cfg, calib_seed=args.calib_seed,
+                            calibration=calibration)
     sampler = sampler_of(model, acc)
 
     num_classes = model.config.num_classes
@@ -352,7 +133,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     H = W = None
     accelerator.wait_for_everyone()
     t_start = time.perf_counter()
-    bar = tqdm(total=args.num_samples, desc=f"sample {args.method}", disable=not main_proc or args.no_progress)
+    bar = tqdm(total=args.num_samples, desc=f"sample {method.label}", disable=not main_proc or args.no_progress)
     for r in range(rounds):
         idx = list(mine[r * args.batch:(r + 1) * args.batch])
         if idx:
@@ -415,16 +196,17 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
         "model": str(args.model),
         "model_config": dataclasses.asdict(model.config),
         "model_checkpoint": getattr(model, "checkpoint_info", None),
-        "method": args.method,
+        "method": method.label,
+        "method_spec": args.method,
         "plan": plan_desc,
-        "sparsity_target": args.sparsity,
-        "fora_n": args.fora_n if args.method in ("fora", "taylorseer", "toca", "duca", "diffusers_taylorseer") else None,
-        "taylor_order": args.taylor_order if args.method in ("taylorseer", "diffusers_taylorseer") else None,
+        "sparsity_target": method.sparsity,
+        "interval": method.n if method.kind != "ddim" else None,
+        "taylor_order": method.order or None,
         "forecast": args.forecast,
         "fresh_ratio": getattr(getattr(acc, "plan", None), "fresh_ratio", None),
-        "fbc_threshold": acc.config.threshold if args.method == "diffusers_fbc" else None,
-        "fbc_calibration": getattr(args, "fbc_calibration", None),
-        "pruner": args.pruner,
+        "fbc_threshold": acc.config.threshold if method.cache == "fbc" else None,
+        "fbc_calibration": calibration or None,
+        "pruner": str(method.path) if method.kind == "pruner" else None,
         "steps": args.steps,
         "scheduler": args.scheduler,
         "cfg_scale": args.cfg,
@@ -456,7 +238,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
         result.update(sparsity=0.0, macs_dense_per_image=per_image, macs_realised_per_image=per_image,
                       macs_pruner_per_image=0.0, macs_ratio=1.0, macs_ratio_with_pruner=1.0)
     if args.ref:
-        import fid
+        from image_suite import fid
 
         if device.type == "cpu" and args.threads is None:  # the other processes are done: use every core
             torch.set_num_threads(os.cpu_count() or 1)

@@ -13,7 +13,8 @@ pytest.importorskip("diffusers")
 
 from conftest import randomize, tiny_official_dit  # noqa: E402
 from tts.adapters.dit import sample_dit  # noqa: E402
-from tts.adapters.dit_diffusers import (DiffusersCache, DiffusersDiT, calibrate_fbc_threshold,  # noqa: E402
+from image_suite.diffusers_cache import DiffusersCache, calibrate_fbc_threshold  # noqa: E402
+from tts.adapters.dit_diffusers import (DiffusersDiT,  # noqa: E402
                                         to_diffusers)
 
 REPO = Path(__file__).resolve().parents[1]
@@ -111,23 +112,24 @@ def test_calibrated_threshold_reproduces_its_sparsity_and_bad_input_errors():
 
 def test_imagenet_cli_checks_the_diffusers_cache_arguments():
     import imagenet
+    from common.methods import parse_method
 
     def args(**kw):
-        base = dict(method="diffusers_fbc", sparsity=None, fbc_threshold=None, pruner=None, plan=None,
-                    fresh_ratio=None, forecast=0, fora_n=5, num_samples=4, batch=2, steps=4, out=Path("x.npz"),
-                    seed=0, calib_seed=1)
+        base = dict(num_samples=4, batch=2, steps=4, out=Path("x.npz"), seed=0, calib_seed=1)
         base.update(kw)
         return argparse.Namespace(**base)
 
-    with pytest.raises(ValueError, match="exactly one of --fbc-threshold and --sparsity"):
-        imagenet.check_args(args())
+    with pytest.raises(ValueError, match="exactly one of a threshold"):
+        parse_method("diffusers:fbc")
+    with pytest.raises(ValueError, match="exactly one of a threshold"):
+        parse_method("diffusers:fbc:0.1@0.8")
     with pytest.raises(ValueError, match="--calib-seed must differ"):
-        imagenet.check_args(args(sparsity=0.8, calib_seed=0))
-    with pytest.raises(ValueError, match="only used by --method diffusers_fbc"):
-        imagenet.check_args(args(method="fora", fbc_threshold=0.1))
-    with pytest.raises(ValueError, match="--sparsity does not apply"):
-        imagenet.check_args(args(method="diffusers_taylorseer", sparsity=0.8))
-    imagenet.check_args(args(fbc_threshold=0.1))  # valid
+        imagenet.check_args(args(calib_seed=0), parse_method("diffusers:fbc@0.8"))
+    with pytest.raises(ValueError, match="budget applies to"):
+        parse_method("every_n:5:timestep@0.8")
+    with pytest.raises(ValueError, match="malformed"):
+        parse_method("diffusers:taylorseer:5:2@0.8")
+    imagenet.check_args(args(calib_seed=0), parse_method("diffusers:fbc:0.1"))  # a threshold needs no calibration
 
 
 def _pipeline_folder(tmp_path, model):
@@ -184,8 +186,8 @@ def test_imagenet_script_samples_a_diffusers_folder_with_a_diffusers_cache(tmp_p
                                     num_classes=10, learn_sigma=False)), std=0.05).eval()
     folder, _ = _pipeline_folder(tmp_path, pixel)
     out = tmp_path / "s.npz"
-    res = imagenet.main(["--model", str(folder), "--method", "diffusers_taylorseer", "--fora-n", "2",
-                         "--taylor-order", "1", "--num-samples", "4", "--batch", "2", "--steps", "6", "--out", str(out),
+    res = imagenet.main(["--model", str(folder), "--method", "diffusers:taylorseer:2:1", "--num-samples", "4",
+                         "--batch", "2", "--steps", "6", "--out", str(out),
                          "--no-progress"])
     arr = np.load(out)["arr_0"]
     assert arr.shape == (4, 8, 8, 3) and arr.dtype == np.uint8

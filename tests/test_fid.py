@@ -13,7 +13,7 @@ import pytest
 import torch
 
 pytest.importorskip("scipy")
-import fid  # noqa: E402
+from image_suite import fid  # noqa: E402
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # conftest: 1 torch thread for this module
@@ -282,10 +282,12 @@ def test_cli_end_to_end(inception, tmp_path):
     for i, im in enumerate(ref):
         Image.fromarray(im).save(tmp_path / "ref" / f"{i:03d}.png")
     out = tmp_path / "out" / "fid.json"
-    rc = fid.main(["--samples", str(tmp_path / "samples.npz"), "--ref", str(tmp_path / "ref"),
-                   "--ref-cache", str(tmp_path / "ref_stats.npz"), "--save-stats", str(tmp_path / "s_stats.npz"),
-                   "--inception", inception.weights_source, "--json", str(out), "--batch-size", "3",
-                   "--no-progress"])
+    import fid as fid_cli  # eval/fid.py, the command-line front end
+
+    rc = fid_cli.main(["--samples", str(tmp_path / "samples.npz"), "--ref", str(tmp_path / "ref"),
+                       "--ref-cache", str(tmp_path / "ref_stats.npz"), "--save-stats", str(tmp_path / "s_stats.npz"),
+                       "--inception", inception.weights_source, "--json", str(out), "--batch-size", "3",
+                       "--no-progress"])
     assert rc == 0
     res = json.loads(out.read_text())
     assert res["n"] == 4 and res["n_ref"] == 4

@@ -172,8 +172,8 @@ def test_missing_model_names_what_to_download(tmp_path):
 
     with pytest.raises(FileNotFoundError, match="no DiT checkpoint"):
         imagenet.main(["--model", str(tmp_path / "nothing"), "--num-samples", "2", "--out", str(tmp_path / "s.npz")])
-    with pytest.raises(ValueError, match="--method tts needs --pruner"):
-        imagenet.main(["--model", str(tmp_path / "nothing"), "--method", "tts", "--out", str(tmp_path / "s.npz")])
+    with pytest.raises(ValueError, match="malformed method 'pruner'"):
+        imagenet.main(["--model", str(tmp_path / "nothing"), "--method", "pruner", "--out", str(tmp_path / "s.npz")])
 
 
 # ------------------------------------------------------------------------------ eval/imagenet.py
@@ -190,8 +190,8 @@ def test_imagenet_script_two_processes_equal_one_process(tmp_path):
     pruner = randomize(tts.Pruner(tts.PrunerConfig(memory_dim=32, num_branches=4, directions=("forward", "timestep"))),
                        seed=2, std=0.5)
     tts.save_pruner(pruner, tmp_path / "pruner")
-    common = ["eval/imagenet.py", "--model", str(tmp_path / "tiny"), "--method", "tts", "--pruner",
-              str(tmp_path / "pruner"), "--sparsity", "0.5", "--steps", "4", "--num-samples", "8", "--batch", "4",
+    common = ["eval/imagenet.py", "--model", str(tmp_path / "tiny"), "--method",
+              f"pruner:{tmp_path / 'pruner'}@0.5", "--steps", "4", "--num-samples", "8", "--batch", "4",
               "--threads", "1", "--no-progress"]
     env = dict(os.environ, OMP_NUM_THREADS="1", HF_HUB_OFFLINE="1")
     launch = [sys.executable, "-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes", "2",

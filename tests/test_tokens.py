@@ -152,26 +152,23 @@ def test_token_plan_errors():
 
 
 def test_imagenet_cli_token_methods(tmp_path):
-    import argparse
+    from common.methods import parse_method
+    from image_suite.sampling import build_accelerator, mlp_share
 
-    import imagenet
-
-    base = dict(method="toca", sparsity=None, fresh_ratio=None, pruner=None, plan=None, fora_n=6,
-                num_samples=4, batch=2, steps=10, out=tmp_path / "x.npz")
-    with pytest.raises(ValueError, match="exactly one of --fresh-ratio and --sparsity"):
-        imagenet.check_args(argparse.Namespace(**base))
-    with pytest.raises(ValueError, match="only used by --method toca"):
-        imagenet.check_args(argparse.Namespace(**{**base, "method": "fora", "fresh_ratio": 0.1}))
+    with pytest.raises(ValueError, match="exactly one of a fresh-token ratio"):
+        parse_method("toca:6")
+    with pytest.raises(ValueError, match="exactly one of a fresh-token ratio"):
+        parse_method("toca:6:0.1@0.8")
+    with pytest.raises(ValueError, match="not available in this suite"):
+        parse_method("toca:6:0.1", kinds=frozenset({"dense", "ddim"}))
     model = _model()
-    args = argparse.Namespace(**{**base, "method": "duca", "sparsity": 0.8})
-    imagenet.check_args(args)
-    acc = imagenet.build_accelerator(model, args)
+    acc = build_accelerator(model, parse_method("duca:6@0.8"), steps=10, cfg=1.5, calib_seed=1)
     try:
         plan = acc.plan
         assert plan.alternate and plan.n == 6
-        r = fresh_ratio_for(0.8, 6, imagenet.mlp_share(model), alternate=True)
+        r = fresh_ratio_for(0.8, 6, mlp_share(model), alternate=True)
         assert plan.fresh_ratio == pytest.approx(r)
         # the MLP share of the tiny DiT (hidden 32, 16 tokens, mlp ratio 4): 256 / (256 + 128 + 32)
-        assert imagenet.mlp_share(model) == pytest.approx(2 * 32 * 128 / (2 * 32 * 128 + 4 * 32 * 32 + 2 * 16 * 32))
+        assert mlp_share(model) == pytest.approx(2 * 32 * 128 / (2 * 32 * 128 + 4 * 32 * 32 + 2 * 16 * 32))
     finally:
         acc.remove()

@@ -20,8 +20,8 @@ spec                            method
 ``diffusers:taylorseer:N:O``    diffusers' TaylorSeer cache (image)
 ==============================  ================================================================
 
-``--forecast O`` (a separate option) adds a Taylor forecast of order O to timestep reuse of
-``file:`` and ``pruner:`` methods; it is part of the row label (``+taylorO``).
+``+taylorO`` after a ``file:`` or ``pruner:`` spec (or ``--forecast O``, a separate option) adds a
+Taylor forecast of order O to timestep reuse; it is part of the row label.
 """
 from __future__ import annotations
 
@@ -33,8 +33,8 @@ from typing import Any, Optional
 
 __all__ = ["Method", "parse_method", "install", "ROBOT_KINDS", "IMAGE_KINDS", "VOCABULARY"]
 
-VOCABULARY = ("dense | ddim:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | file:SCHEDULE.json | "
-              "pruner:PATH[@RHO] | taylorseer:N:O | toca:N[:RATIO][@RHO] | duca:N[:RATIO][@RHO] | "
+VOCABULARY = ("dense | ddim:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | file:SCHEDULE.json[+taylorO] | "
+              "pruner:PATH[@RHO][+taylorO] | taylorseer:N:O | toca:N[:RATIO][@RHO] | duca:N[:RATIO][@RHO] | "
               "diffusers:fbc[:THRESHOLD][@RHO] | diffusers:taylorseer:N:O")
 ROBOT_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "file", "pruner", "taylorseer"})
 IMAGE_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "file", "pruner", "taylorseer", "toca", "duca",
@@ -110,6 +110,12 @@ def _budget(spec: str) -> tuple[str, Optional[float]]:
 def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0) -> Method:
     """Parse ``spec`` (see the module docstring); ``kinds`` limits what the calling suite runs."""
     spec = spec.strip()
+    suffix = re.fullmatch(r"(.*)\+taylor(\d+)", spec)
+    if suffix:
+        spec, order = suffix.group(1), int(suffix.group(2))
+        if forecast and forecast != order:
+            raise ValueError(f"method {spec!r}+taylor{order} and --forecast {forecast} disagree")
+        forecast = order
     kind = spec.split(":", 1)[0]
     if kind not in IMAGE_KINDS | ROBOT_KINDS:
         raise ValueError(f"unknown method {spec!r}; the vocabulary is {VOCABULARY}")
