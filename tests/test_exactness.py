@@ -27,7 +27,7 @@ def test_all_compute_is_bit_identical(family, batch, fast_dense):
     ref = _forward(model, args, grad)
     with tts.accelerate(model, _directions(name), fast_dense=fast_dense) as acc:
         outs = [_forward(model, args, grad) for _ in range(2)]
-        assert acc._passthrough is fast_dense
+        assert acc.executor.passthrough is fast_dense
     for out in outs:
         assert torch.equal(out, ref), f"{name}: max abs diff {(out - ref).abs().max().item()}"
     assert acc.summary().sparsity() == 0.0
@@ -42,5 +42,5 @@ def test_compute_step_exact_when_caches_are_written(family):
     ref = _forward(model, args, grad)
     with tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(2)) as acc:
         out = _forward(model, args, grad)
-        assert not acc._passthrough and acc.cache.timestep[0] is not None
+        assert not acc.executor.passthrough and acc.cache.timestep[0] is not None
     assert torch.equal(out, ref)

@@ -21,7 +21,8 @@ is always computed by the engine, whatever the plan says.
 from __future__ import annotations
 
 import math
-from typing import Iterable, Sequence, Union
+from types import MappingProxyType
+from typing import Iterable, Mapping, Sequence, Union
 
 import torch
 
@@ -80,31 +81,73 @@ def _accumulator_hits(i: int, rate: float) -> bool:
 
 
 class Plan:
-    """Base class of decision sources. Subclasses implement :meth:`step`.
+    """Base class of decision sources: the whole protocol the engine calls, with no-op defaults.
+
+    Subclasses implement :meth:`step`; everything else is optional. Per sampling call the engine
+    calls, in this order: :meth:`observe` (plans that read the condition memory, before the call),
+    :meth:`begin_call`, then :meth:`step` (or :meth:`soft_step` for ``soft`` plans) once per
+    denoising step from step 1 on (step 0 always computes), and during a step
+    :meth:`record_probe` / :meth:`select_tokens` for token-refresh plans.
 
     ``step(k, batch)`` returns an int8 CPU tensor of shape [1, nb] (same for every sample) or
     [batch, nb]. ``uses`` is the set of decision codes the plan may emit (validated against the
     enabled directions when the plan is bound).
     """
 
+    #: decision codes the plan may emit
     uses: frozenset[int] = frozenset({COMPUTE})
+    #: decision code of each gate option of :meth:`soft_step` (compute first)
+    codes: Sequence[int] = (COMPUTE,)
+    #: True for training plans: every branch computes and is mixed with cached outputs by the
+    #: differentiable gates of :meth:`soft_step` instead of :meth:`step`'s hard decisions
+    soft: bool = False
+    #: True when the plan wants each self-attention's received attention (:meth:`record_probe`)
+    wants_probe: bool = False
+    #: seconds the plan spent on the current call (e.g. ``pruner``, ``wait``), read after step 1
+    timing: Mapping[str, float] = MappingProxyType({})
+    #: MACs the plan itself spends per sample and call (a learned pruner); 0 for static plans
+    macs_per_sample: float = 0.0
 
     def bind(self, num_branches: int, branch_kinds: Sequence[str]) -> None:
         """Called once by the engine with the model's branch layout."""
         self.num_branches = num_branches
         self.branch_kinds = tuple(branch_kinds)
 
+    @property
+    def reads_condition(self) -> bool:
+        """True when the plan overrides :meth:`observe`: the model must expose its condition memory."""
+        return type(self).observe is not Plan.observe
+
+    def observe(self, memory: torch.Tensor, dense: bool) -> None:
+        """The condition memory [B, K, Tc, D] of the call about to start (all K steps). ``dense``:
+        the engine computes this call fully anyway (first call of an episode)."""
+
     def begin_call(self, call_index: int, batch: int) -> None:
         """Called at the start of every sampling call (before step 0)."""
 
     def step(self, k: int, batch: int) -> torch.Tensor:  # pragma: no cover - abstract
+        """Decisions for step ``k``: int8 [1 or batch, num_branches]."""
         raise NotImplementedError
+
+    def soft_step(self, k: int) -> torch.Tensor:
+        """``soft`` plans: gates [B, num_branches, len(codes)] for step ``k`` (option j reuses ``codes[j]``)."""
+        raise NotImplementedError(f"{self.describe()} is not a soft (training) plan")
+
+    def record_probe(self, site: int, received: torch.Tensor) -> None:
+        """``wants_probe`` plans: attention received per token [B, N] in block ``site`` at a computed step."""
+
+    def select_tokens(self, b: int, site: int, k: int, cached: torch.Tensor) -> torch.Tensor:
+        """Plans emitting ``TOKENS``: indices [B, m] of the tokens of branch ``b`` to recompute at step
+        ``k``; ``cached`` is its timestep-cache output [B, N, ...]."""
+        raise NotImplementedError(f"{self.describe()} emits no token-wise refresh")
 
     @property
     def may_reuse(self) -> bool:
+        """Whether any decision reuses (the engine then keeps caches)."""
         return bool(self.uses - {COMPUTE})
 
     def describe(self) -> str:
+        """Short label for summaries and error messages."""
         return type(self).__name__
 
 
