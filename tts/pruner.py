@@ -1,4 +1,4 @@
-"""The learned pruner (spec §3) and the plan that runs it before each sampling call (spec §6).
+"""The learned pruner and the plan that runs it before each sampling call.
 
 The pruner reads the denoiser's own condition memory for all K steps, [B, K, Tc, D] (for DP-T the
 condition encoder's output, computed in one batched call: the pruner shares it, nothing is encoded
@@ -6,7 +6,7 @@ twice), and predicts logits [B, K, nb, O] over {compute} + the enabled direction
 at every step. Architecture: Linear(D -> h) on the memory; fixed sinusoidal (or learned) branch
 queries; one pre-norm decoder layer (query self-attention, cross-attention to the memory, ReLU FFN);
 Linear(h -> O). The query self-attention does not depend on the input, so in eval mode it is
-computed once and cached. No flip of the K axis (spec §3): the gates of step k come from memory k.
+computed once and cached. No flip of the K axis: the gates of step k come from memory k.
 
 :class:`PrunerPlan` feeds the engine. ``mode``: ``"argmax"`` (the paper), ``"budget"`` (exact
 sparsity per sample, see :mod:`tts.gates`) or ``"ste"`` (training: differentiable gates, every
@@ -14,7 +14,7 @@ branch computed and mixed). ``parallel``: the pruner runs on a side CUDA stream 
 thread (CPU) while step 0, which is always dense, runs; step 1 waits for it. ``"auto"`` (default)
 uses the thread on CPU only when torch leaves cores idle (``torch.get_num_threads() <
 usable cores): when torch's threads already use every core, a second thread slows step 0 by
-more than the overlap saves (measured on a 2-core CPU: 58 ms vs 54 ms per call at batch 1).
+more than the overlap saves.
 """
 from __future__ import annotations
 
@@ -471,7 +471,7 @@ def distill_schedule(pruner: PrunerModule, memory: torch.Tensor, grid: torch.Ten
 # -------------------------------------------------------------------- training objective
 def pruner_loss(pred: torch.Tensor, target: torch.Tensor, gates: torch.Tensor, sparsity: float,
                 lam: float = 1.0, weight: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
-    """Spec §4: L1 between the sparse and the dense action (raw units, full horizon) plus
+    """The training objective: L1 between the sparse and the dense action (full horizon) plus
     ``lam`` * |per-sample reuse fraction - sparsity| (hard STE gates). ``weight`` [B] masks padded
     samples. Returns loss, l1, sparsity term and the per-sample reuse fraction."""
     from .gates import reuse_fraction

@@ -1,20 +1,31 @@
-"""Episode batches in lockstep (spec §4): the rollout cache carries from frame r-1 to frame r.
+"""Recorded dense-policy trajectories: the file format, and episode batches in lockstep.
 
-An *episode* is a dict of per-call arrays with a common leading length R (e.g. ``obs`` [R, To, d],
-``action_pred`` [R, H, Da], ``noise_seed`` [R]). :func:`episode_groups` shuffles episodes into groups
-of ``batch`` and :func:`lockstep_frames` walks a group frame by frame. Unlike the reference, which
-truncates every episode to the shortest one (spec §10 item 4), shorter episodes are padded by
-repeating their last frame with loss weight 0, so no frame is dropped.
+An *episode* is a dict of per-call arrays with a common leading length R (``obs`` [R, To, obs_dim]:
+the observation window fed to ``predict_action``; ``action_pred`` [R, H, Da]: the dense action, the
+training target; ``noise_seed`` [R]: the seed of that call's noise; plus ``seed`` and ``success``).
+:func:`save_trajectories` / :func:`load_trajectories` read and write a file of them.
+
+:func:`episode_groups` shuffles episodes into groups of ``batch`` and :func:`lockstep_frames` walks a
+group frame by frame, so that the rollout cache carries from frame r-1 to frame r. Shorter episodes
+are padded by repeating their last frame with loss weight 0 (rather than truncating every episode to
+the shortest one), so no frame is dropped.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Iterator, Sequence
 
 import numpy as np
 import torch
 
-__all__ = ["Frame", "episode_groups", "lockstep_frames", "split_episodes"]
+from .io import atomic_path
+
+__all__ = ["Frame", "REPLAY_KEYS", "TRAJECTORY_FORMAT", "episode_groups", "held_out_episodes", "load_trajectories",
+           "lockstep_frames", "obs_dict", "save_trajectories", "split_episodes"]
+
+TRAJECTORY_FORMAT = "tts-trajectories-v1"
+REPLAY_KEYS = ("obs", "action_pred", "noise_seed")  # the per-call arrays a replay or the trainer needs
 
 
 @dataclass
@@ -25,6 +36,42 @@ class Frame:
     first: bool  # frame 0: the dense call that fills the rollout cache (excluded from the loss)
 
 
+# -------------------------------------------------------------------- trajectory files
+def save_trajectories(path: Path, episodes: list[dict], meta: dict) -> None:
+    """Write ``episodes`` and the collection metadata ``meta`` to ``path`` atomically."""
+    with atomic_path(path) as tmp:
+        torch.save({"format": TRAJECTORY_FORMAT, "meta": meta, "episodes": episodes}, tmp)
+
+
+def load_trajectories(path: Path, successful_only: bool = True) -> tuple[list[dict], dict]:
+    """Episodes (dicts of numpy arrays + seed/success) and the collection metadata."""
+    doc = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(doc, dict) or doc.get("format") != TRAJECTORY_FORMAT:
+        raise ValueError(f"{path} is not a tts trajectory file")
+    eps = [e for e in doc["episodes"] if e["success"] or not successful_only]
+    return eps, doc["meta"]
+
+
+def held_out_episodes(path: Path, first: int) -> tuple[list[dict], int]:
+    """The successful episodes of ``path`` from index ``first`` on (those a pruner or schedule was not
+    fitted on) and the number of successful episodes in all; an error if there are none."""
+    episodes, _ = load_trajectories(path)
+    if not episodes[first:]:
+        raise ValueError(f"no held-out episodes: {len(episodes)} recorded, the first held-out index is {first}")
+    return episodes[first:], len(episodes)
+
+
+def obs_dict(policy, window: torch.Tensor) -> dict[str, np.ndarray]:
+    """Split a stored obs window [E, To, obs_dim] back into the policy's observation keys
+    (``policy.cfg.obs_keys`` / ``obs_dims``, in that order)."""
+    out, i = {}, 0
+    for k, d in zip(policy.cfg.obs_keys, policy.cfg.obs_dims):
+        out[k] = window[..., i:i + d].numpy()
+        i += d
+    return out
+
+
+# -------------------------------------------------------------------- lockstep batches
 def split_episodes(episodes: Sequence[dict], n_train: int, n_val: int) -> tuple[list[dict], list[dict]]:
     """First ``n_train`` episodes for training, the next ``n_val`` for validation (clear error if short)."""
     if n_train < 1:

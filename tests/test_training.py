@@ -1,0 +1,166 @@
+"""Pruner training as library code: the config object, the policy trainer, the resumable loop."""
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import tts
+from test_pruner import _toy_policy_and_trajectories
+from test_robot_pipeline import obs_batch
+from tts.plans import COMPUTE, ROLLOUT, TIMESTEP
+from tts.policy_training import PolicyPrunerTrainingConfig, train_policy_pruner
+from tts.pruner import Pruner, PrunerConfig
+from tts.trajectories import load_trajectories
+from tts.training import PrunerTrainingConfig, fit, read_grid
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _decisions(policy, pruner):
+    """Decisions [K, B, nb] and actions of the second call of an episode (the first is dense)."""
+    with tts.accelerate(policy, pruner.config.directions, pruner=pruner, parallel=False) as acc:
+        policy.predict_action(obs_batch(3, 0), torch.Generator().manual_seed(0))
+        out = policy.predict_action(obs_batch(3, 1), torch.Generator().manual_seed(1))["action_pred"]
+        return acc.summary().calls[-1].decisions(), out
+
+
+def test_train_policy_pruner_from_a_config_object_round_trips_through_the_checkpoint(tmp_path):
+    pol = _toy_policy_and_trajectories(tmp_path, [3 + e % 2 for e in range(6)])
+    episodes, _ = load_trajectories(tmp_path / "traj.pt")
+    config = PolicyPrunerTrainingConfig(out=tmp_path / "pruner_0.6", sparsity=0.6, epochs=2, batch=2, n_train=4,
+                                        n_val=2, lr=0.02, hidden=16, paired=True, run_dir=tmp_path / "run")
+    pruner = train_policy_pruner(pol, episodes, config, metadata={"note": "from python"}, log=None)
+    back = tts.load_pruner(config.out)
+    for (k, a), b in zip(pruner.state_dict().items(), back.state_dict().values()):
+        assert torch.equal(a, b), k  # the returned pruner is the best epoch's, as written
+    d_trained, a_trained = _decisions(pol, pruner)
+    d_loaded, a_loaded = _decisions(pol, back)
+    assert torch.equal(d_trained, d_loaded) and torch.equal(a_trained, a_loaded)
+    assert (d_loaded != COMPUTE).any()  # it learned to reuse (the head starts biased to compute)
+    meta = back.metadata
+    assert meta == pruner.metadata and meta["note"] == "from python"
+    assert meta["n_train_episodes"] == 4 and meta["n_val_episodes"] == 2 and len(meta["history"]) == 2
+    assert meta["best_epoch"] in meta["history"] and meta["pruner_macs_per_call"] > 0
+    # the checkpoint records the options it was trained with: the same config comes back from it
+    assert PolicyPrunerTrainingConfig.from_dict(meta) == config
+    assert meta["directions"] == ["forward", "timestep", "rollout"] and meta["out"] == str(config.out)
+
+
+# ---------------------------------------------------------------- the loop: resume and mismatches
+class Interrupted(Exception):
+    pass
+
+
+def _toy_run(config, interrupt_at=None, trained=None, hidden=8):
+    """fit() on a small pruner whose epochs use the shuffle rng, the noise generator and dropout (the
+    global generator), i.e. every random state an exact resume must restore."""
+    torch.manual_seed(0)
+    pruner = Pruner(PrunerConfig(memory_dim=8, num_branches=3, directions=("timestep",), hidden=hidden, heads=2,
+                                 ffn=16, dropout=0.2))
+    memory = torch.randn(16, 4, 2, 8, generator=torch.Generator().manual_seed(1))
+
+    def train_epoch(opt, rng, noise_rng, epoch):
+        if epoch == interrupt_at:
+            raise Interrupted
+        if trained is not None:
+            trained.append(epoch)
+        rows = []
+        for idx in np.array_split(rng.permutation(16), 4):
+            noisy = memory[idx] + 0.1 * torch.randn(len(idx), 4, 2, 8, generator=noise_rng)
+            loss = (pruner(noisy).softmax(-1)[..., 0] - 0.3).abs().mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            rows.append({"l1": float(loss.detach()), "sparsity": 0.5, "frames": len(idx)})
+        return rows
+
+    def validate():
+        with torch.no_grad():
+            p = pruner.eval()(memory).softmax(-1)[..., 0]
+        return [{"l1": float((p - 0.3).abs().mean()), "sparsity": float(1 - p.mean()), "frames": 16}]
+
+    best = fit(pruner, config, train_epoch=train_epoch, validate=validate, steps=4, memory_tokens=2, log=None)
+    return pruner, best
+
+
+def test_resume_after_an_interrupted_epoch_continues_from_the_saved_state(tmp_path):
+    def config(name, **kw):
+        return PrunerTrainingConfig(out=tmp_path / name, run_dir=tmp_path / f"run_{name}", directions="timestep",
+                                    sparsity=0.5, epochs=3, lr=0.05, **kw)
+
+    _toy_run(config("whole"))
+    with pytest.raises(Interrupted):
+        _toy_run(config("cut"), interrupt_at=2)  # epochs 1 and 2 done and saved, the third interrupted
+    assert len(tts.load_pruner(tmp_path / "cut").metadata["history"]) == 2
+    trained = []
+    _toy_run(config("cut", resume=True), trained=trained)
+    assert trained == [2]  # only the missing epoch ran
+    whole, cut = (torch.load(tmp_path / f"run_{n}" / "pruner_state.pt", weights_only=False) for n in ("whole", "cut"))
+    for k, a in whole["pruner"].items():  # the same shuffles, noise and dropout as the uninterrupted run
+        assert torch.equal(a, cut["pruner"][k]), k
+    assert [h["val_score"] for h in whole["history"]] == [h["val_score"] for h in cut["history"]]
+    assert [h["epoch"] for h in tts.load_pruner(tmp_path / "cut").metadata["history"]] == [1, 2, 3]
+    # resuming a finished run trains nothing
+    trained.clear()
+    _toy_run(config("cut", resume=True), trained=trained)
+    assert trained == []
+    # a state that does not belong to this run is refused, not half-loaded
+    with pytest.raises(ValueError, match="different pruner.*hidden"):
+        _toy_run(config("cut", resume=True), hidden=16)
+    with pytest.raises(ValueError, match="other lr"):
+        _toy_run(replace(config("cut", resume=True), lr=0.01))
+
+
+# ---------------------------------------------------------------- config and grids
+def test_config_validates_and_reads_options_from_a_mapping(tmp_path):
+    with pytest.raises(ValueError, match="epochs"):
+        PrunerTrainingConfig(out=tmp_path / "p", epochs=0)
+    with pytest.raises(ValueError, match="unknown direction"):
+        PrunerTrainingConfig(out=tmp_path / "p", directions="forward,sideways")
+    with pytest.raises(ValueError, match=r"\[0, 1\)"):
+        PrunerTrainingConfig(out=tmp_path / "p", sparsity=1.0)
+    with pytest.raises(ValueError, match="val_mode"):
+        PrunerTrainingConfig(out=tmp_path / "p", val_mode="top")
+    with pytest.raises(ValueError, match="needs tie_branches"):
+        PrunerTrainingConfig(out=tmp_path / "p", step_query=True)
+    with pytest.raises(ValueError, match="static"):
+        PolicyPrunerTrainingConfig(out=tmp_path / "p", static=True, prior="every_n:2")
+    c = PolicyPrunerTrainingConfig.from_dict({"out": str(tmp_path / "p"), "directions": "rollout,timestep",
+                                              "head_bias": "2,0,1", "threads": 1, "checkpoint": "x"})
+    assert c.directions == ("timestep", "rollout") and c.head_bias == [2.0, 0.0, 1.0] and c.out == tmp_path / "p"
+    assert c.state_path == Path("runs") / "p" / "pruner_state.pt"
+
+
+def test_cli_rejects_options_that_do_not_combine():
+    import train_pruner
+
+    with pytest.raises(SystemExit):
+        train_pruner.main(["--trajectories", "t.pt", "--checkpoint", "c", "--out", "o", "--static",
+                           "--prior", "s.json"])
+
+
+def test_read_grid_from_a_file_strings_or_a_tensor(tmp_path):
+    rows = ["CCC", "TRT", "TCT"]
+    (tmp_path / "s.json").write_text(json.dumps({"grid": rows}))
+    g = read_grid(tmp_path / "s.json")
+    assert g.tolist() == [[COMPUTE] * 3, [TIMESTEP, ROLLOUT, TIMESTEP], [TIMESTEP, COMPUTE, TIMESTEP]]
+    assert torch.equal(read_grid(rows), g) and torch.equal(read_grid(str(tmp_path / "s.json")), g)
+    assert torch.equal(read_grid(g), g)
+    assert read_grid(rows, reuse="rollout")[1].tolist() == [ROLLOUT] * 3
+    with pytest.raises(ValueError, match="steps, branches"):
+        read_grid(torch.zeros(3, dtype=torch.int8))
+    # a tensor prior is recorded in the checkpoint as strings, which read back as the same grid
+    cfg = PrunerTrainingConfig(out=tmp_path / "p", prior=g)
+    assert cfg.to_json()["prior"] == rows and torch.equal(read_grid(cfg.to_json()["prior"]), g)
+
+
+def test_committed_pruner_checkpoints_still_load():
+    paths = sorted((REPO / "checkpoints" / "pruners").glob("*.json"))
+    if not paths:
+        pytest.skip("no committed pruner checkpoints")
+    for path in paths:
+        pruner = tts.load_pruner(path)
+        assert "history" in pruner.metadata, path.name
