@@ -1,4 +1,4 @@
-"""Dense-policy trajectories for pruner training (spec §4 "use_target_action", §10 item 1).
+"""Dense-policy trajectories for pruner training (the pruner's target is the dense policy's action).
 
     python eval/collect_trajectories.py --task lift --checkpoint checkpoints/lift_dpt \
         --episodes 112 --seed 200000 --out data/trajectories/lift.pt
@@ -17,7 +17,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -26,30 +25,7 @@ from robot_suite.rollout import run_wave  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 from robot_suite.tasks import TASKS, make_env  # noqa: E402
-from tts.io import atomic_path  # noqa: E402
-
-
-def save(path: Path, episodes: list[dict], meta: dict) -> None:
-    with atomic_path(path) as tmp:
-        torch.save({"format": "tts-trajectories-v1", "meta": meta, "episodes": episodes}, tmp)
-
-
-def load_trajectories(path: Path, successful_only: bool = True) -> tuple[list[dict], dict]:
-    """Episodes (dicts of numpy arrays + seed/success) and the collection metadata."""
-    doc = torch.load(path, map_location="cpu", weights_only=False)
-    if doc.get("format") != "tts-trajectories-v1":
-        raise ValueError(f"{path} is not a tts trajectory file")
-    eps = [e for e in doc["episodes"] if e["success"] or not successful_only]
-    return eps, doc["meta"]
-
-
-def held_out_episodes(path: Path, first: int) -> tuple[list[dict], int]:
-    """The successful episodes of ``path`` from index ``first`` on (those a pruner or schedule was not
-    fitted on) and the number of successful episodes in all; an error if there are none."""
-    episodes, _ = load_trajectories(path)
-    if not episodes[first:]:
-        raise ValueError(f"no held-out episodes: {len(episodes)} recorded, the first held-out index is {first}")
-    return episodes[first:], len(episodes)
+from tts.trajectories import load_trajectories, save_trajectories  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -79,7 +55,7 @@ def main(argv=None) -> None:
             outcomes, _ = run_wave(policy, envs, wave, args.task, None, record=True)
             for o in outcomes:
                 episodes.append({"seed": o["seed"], "success": o["success"], **o["trajectory"]})
-            save(args.out, episodes, meta)
+            save_trajectories(args.out, episodes, meta)
             bar.update(len(wave))
             bar.set_postfix(success=f"{np.mean([e['success'] for e in episodes]):.2f}")
     ok = sum(e["success"] for e in episodes)

@@ -22,14 +22,13 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from collect_trajectories import load_trajectories  # noqa: E402
 from common import REPO, parse_args  # noqa: E402
-from train_pruner import KEYS, obs_dict  # noqa: E402
+from robot_suite.replay import replay  # noqa: E402
 
 import tts  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 from tts.static_search import record_branch_outputs  # noqa: E402
-from tts.trajectories import lockstep_frames  # noqa: E402
+from tts.trajectories import REPLAY_KEYS, load_trajectories  # noqa: E402
 
 DOCS = REPO / "docs"
 COLORS = ["#1b1b1b", "#e6550d", "#3182bd", "#31a354"]  # compute, forward, timestep, rollout
@@ -42,16 +41,6 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def replay(policy, episodes, fn=None):
-    """Run ``policy`` over recorded episodes in lockstep with their recorded noise."""
-    policy.reset()
-    for frame in lockstep_frames(episodes, KEYS):
-        gen = [torch.Generator().manual_seed(int(s)) for s in frame.data["noise_seed"].tolist()]
-        policy.predict_action(obs_dict(policy, frame.data["obs"]), generator=gen)
-        if fn is not None:
-            fn(frame)
 
 
 def masks(args) -> Path:
@@ -98,7 +87,7 @@ def similarity(args) -> Path:
     eps = episodes[args.first_episode:args.first_episode + args.episodes]
     policy = load_policy(args.checkpoint)
     n_frames = min(len(e["obs"]) for e in eps)
-    eps = [{k: v[:n_frames] if k in KEYS else v for k, v in e.items()} for e in eps]
+    eps = [{k: v[:n_frames] if k in REPLAY_KEYS else v for k, v in e.items()} for e in eps]
     outs = record_branch_outputs(policy, lambda: replay(policy, eps))  # [call][k][b] -> [E, H, D]
     K, nb = len(outs[0]), len(outs[0][0])
     sims = {name: np.full((K, nb), np.nan) for name in ("forward", "timestep", "rollout")}

@@ -24,13 +24,12 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from collect_trajectories import load_trajectories  # noqa: E402
 from common import REPO, provenance, write_json, parse_args  # noqa: E402
 from common import methods  # noqa: E402
 from common.methods import ROBOT_KINDS, VOCABULARY, parse_method  # noqa: E402
-from train_pruner import obs_dict  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
+from tts.trajectories import load_trajectories, obs_dict  # noqa: E402
 
 
 def _sync(policy) -> None:

@@ -30,13 +30,12 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from collect_trajectories import held_out_episodes  # noqa: E402
 from common import REPO, parse_args, provenance, write_json  # noqa: E402
-from train_pruner import obs_dict  # noqa: E402
 
 import tts  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 from tts.static_search import steps_grid  # noqa: E402
+from tts.trajectories import held_out_episodes, obs_dict  # noqa: E402
 
 
 def neighbours(compute_steps: Sequence[int], steps: int, shifts: Sequence[int]) -> list[list[int]]:

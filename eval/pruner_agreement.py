@@ -20,14 +20,14 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from collect_trajectories import held_out_episodes  # noqa: E402
 from common import REPO, parse_args, provenance, write_json  # noqa: E402
-from figures import replay  # noqa: E402
-from pruner_fit import read_grid  # noqa: E402
+from robot_suite.replay import replay  # noqa: E402
 
 import tts  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 from tts.io import checkpoint_pair  # noqa: E402
+from tts.trajectories import held_out_episodes  # noqa: E402
+from tts.training import read_grid  # noqa: E402
 
 
 def agreement(calls, prior: torch.Tensor) -> dict:
@@ -77,7 +77,7 @@ def main(argv=None) -> dict:
             acc.calls.clear()
             replay(policy, held_out[i:i + args.batch])
             calls += acc.summary().calls
-        prior = read_grid(Path(meta["prior"]), *calls[-1].decisions()[:, 0].shape, reuse=meta.get("prior_reuse"))
+        prior = read_grid(meta["prior"], *calls[-1].decisions()[:, 0].shape, reuse=meta.get("prior_reuse"))
         res = agreement(calls, prior)
     res.update(task=args.task, pruner=str(args.pruner), prior=meta["prior"], sparsity=args.sparsity,
                episodes=f"{first}..{n_episodes - 1}", trajectories=str(args.trajectories),

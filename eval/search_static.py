@@ -28,13 +28,12 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from collect_trajectories import load_trajectories  # noqa: E402
 from common import provenance, write_json, parse_args  # noqa: E402
-from train_pruner import obs_dict  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 import tts  # noqa: E402
 from tts.static_search import reuse_errors, search_compute_steps, search_schedule, steps_grid  # noqa: E402
+from tts.trajectories import load_trajectories, obs_dict  # noqa: E402
 
 
 def policy_calibration(args):

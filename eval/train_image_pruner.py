@@ -10,7 +10,8 @@ each training index i (class i % num_classes, initial noise seeded by ``(--seed 
 from eval/imagenet.py's evaluation samples, which use ``(0, i)``), the dense DDIM sample is the
 target and the sparse sampler, run with straight-through gates from the same noise, is trained
 towards it: L1 on the final sample + lambda * |reuse fraction - sparsity| per row. Validation uses
-the test-time rule (``--val-mode``). Loop, checkpoints and ``--resume``: eval/pruner_fit.py.
+the test-time rule (``--val-mode``). Loop, checkpoints and ``--resume``: :func:`tts.training.fit`,
+whose :class:`tts.training.PrunerTrainingConfig` field of the same name each shared option sets.
 """
 from __future__ import annotations
 
@@ -24,13 +25,14 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import parse_args  # noqa: E402
-from imagenet import index_seed  # noqa: E402
-from pruner_fit import RecordingPlan, add_training_args, fit, read_grid  # noqa: E402
+from common.training_args import add_training_args, training_metadata  # noqa: E402
+from image_suite.sampling import index_seed  # noqa: E402
 
 import tts  # noqa: E402
 from tts.adapters.dit import load_dit, sample_dit  # noqa: E402
 from tts.gates import reuse_fraction  # noqa: E402
 from tts.pruner import PrunerConfig, PrunerPlan, build_pruner  # noqa: E402
+from tts.training import PrunerTrainingConfig, RecordingPlan, fit, read_grid  # noqa: E402
 
 
 def noise_for(model, seed: int, indices) -> torch.Tensor:
@@ -48,16 +50,19 @@ def main(argv=None) -> dict:
     ap.add_argument("--n-train", type=int, default=256)
     ap.add_argument("--n-val", type=int, default=64)
     args = parse_args(ap, argv)
-    tts.plans.check_sparsity(args.sparsity)
-    directions = tts.plans.check_directions(args.directions.split(","))
+    try:
+        config = PrunerTrainingConfig.from_dict(vars(args))
+    except ValueError as e:
+        ap.error(str(e))
+    directions = config.directions
     if "rollout" in directions:
         raise SystemExit("an image generator has no rollouts: use the forward and/or timestep directions")
-    torch.manual_seed(args.seed)
+    torch.manual_seed(config.seed)
     model = load_dit(args.model).requires_grad_(False)
     n_cls = model.y_embedder.num_classes
-    data_seed = args.seed + 2
-    train_idx = np.arange(args.n_train)
-    val_idx = np.arange(args.n_train, args.n_train + args.n_val)
+    data_seed = config.seed + 2
+    train_idx = np.arange(config.n_train)
+    val_idx = np.arange(config.n_train, config.n_train + config.n_val)
 
     def dense(indices) -> torch.Tensor:
         out = []
@@ -71,12 +76,12 @@ def main(argv=None) -> dict:
     targets = dense(np.concatenate([train_idx, val_idx]))
     cfg = model.config
     pruner = build_pruner(PrunerConfig(memory_dim=cfg.hidden_size, num_branches=2 * cfg.depth, directions=directions,
-                                       hidden=args.hidden, steps=args.steps, prior=args.prior is not None,
-                                       tie_branches=args.tie_branches, step_query=args.step_query))
-    if args.prior is not None:
-        grid = read_grid(args.prior, steps=args.steps, branches=2 * cfg.depth, reuse=args.prior_reuse)
-        pruner.set_prior(grid, margin=args.prior_margin)
-    train_plan = PrunerPlan(pruner, mode="ste", sparsity=args.sparsity if args.train_budget else None)
+                                       hidden=config.hidden, steps=args.steps, prior=config.prior is not None,
+                                       tie_branches=config.tie_branches, step_query=config.step_query))
+    if config.prior is not None:
+        grid = read_grid(config.prior, steps=args.steps, branches=2 * cfg.depth, reuse=config.prior_reuse)
+        pruner.set_prior(grid, margin=config.prior_margin)
+    train_plan = PrunerPlan(pruner, mode="ste", sparsity=config.sparsity if config.train_budget else None)
 
     def run(plan, idx, opt=None) -> dict:
         labels = torch.as_tensor(idx % n_cls)
@@ -85,7 +90,7 @@ def main(argv=None) -> dict:
         l1 = (pred - targets[idx]).abs().mean()
         if opt is not None:
             reuse = reuse_fraction(plan.gates)  # every row: cond and uncond halves
-            loss = l1 + args.lam * (reuse - args.sparsity).abs().mean()
+            loss = l1 + config.lam * (reuse - config.sparsity).abs().mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(pruner.parameters(), 1.0)
@@ -97,20 +102,20 @@ def main(argv=None) -> dict:
 
     def batches(idx, rng):
         order = idx if rng is None else rng.permutation(idx)
-        return [order[s:s + args.batch] for s in range(0, len(order), args.batch)]
+        return [order[s:s + config.batch] for s in range(0, len(order), config.batch)]
 
     def train_epoch(opt, rng, noise_rng, epoch):
-        with tts.accelerate(model, directions, plan=train_plan, forecast=args.forecast):
-            return [run(train_plan, b, opt) for b in tqdm(batches(train_idx, rng), desc=f"epoch {epoch + 1}/{args.epochs}")]
+        with tts.accelerate(model, directions, plan=train_plan, forecast=config.forecast):
+            return [run(train_plan, b, opt) for b in tqdm(batches(train_idx, rng), desc=f"epoch {epoch + 1}/{config.epochs}")]
 
     def validate():
-        plan = RecordingPlan(pruner, args.val_mode, args.sparsity)
-        with tts.accelerate(model, directions, plan=plan, forecast=args.forecast):
+        plan = RecordingPlan(pruner, config.val_mode, config.sparsity)
+        with tts.accelerate(model, directions, plan=plan, forecast=config.forecast):
             return [run(plan, b) for b in batches(val_idx, None)]
 
-    return fit(pruner, args, train_epoch=train_epoch, validate=validate,
-               metadata=lambda: dict(model=str(args.model), n_train_samples=len(train_idx),
-                                     n_val_samples=len(val_idx), data_seed=data_seed),
+    meta = dict(training_metadata(args), n_train_samples=len(train_idx), n_val_samples=len(val_idx),
+                data_seed=data_seed)
+    return fit(pruner, config, train_epoch=train_epoch, validate=validate, metadata=meta,
                steps=args.steps, memory_tokens=1)
 
 

@@ -1,4 +1,6 @@
 """Learned pruner: gate scheduler, lockstep trajectory batching, pruner network, engine integration."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -267,9 +269,8 @@ def _toy_policy_and_trajectories(tmp_path, lengths: list[int]):
     """A small 6-step policy saved at tmp_path/policy and one recorded successful episode per entry
     of ``lengths`` (that many calls, dense action_pred with noise seed 100 * episode + call) at
     tmp_path/traj.pt, as eval/collect_trajectories.py writes them."""
-    from collect_trajectories import save
-    from train_pruner import obs_dict
     from tts.adapters.dp_policy import save_policy
+    from tts.trajectories import obs_dict, save_trajectories
 
     pol = small_policy(num_steps=6)
     save_policy(pol, tmp_path / "policy", dtype=torch.float32)
@@ -281,7 +282,7 @@ def _toy_policy_and_trajectories(tmp_path, lengths: list[int]):
                           for r, o in enumerate(obs)])
         episodes.append({"seed": e, "success": True, "obs": obs, "action_pred": preds, "action": preds[:, 1:9],
                          "noise_seed": 100 * e + np.arange(n)})
-    save(tmp_path / "traj.pt", episodes, {"command": "test"})
+    save_trajectories(tmp_path / "traj.pt", episodes, {"command": "test"})
     return pol
 
 
@@ -301,6 +302,10 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
     assert len(hist) == 3 and pr.metadata["n_train_episodes"] == 4
     assert pr.metadata["best_epoch"]["val_sparsity"] > 0.2  # started near 0 (head biased to compute)
     assert pr.metadata["pruner_macs_per_call"] > 0
+    # the command line records the same metadata fields as the committed checkpoints it trained
+    committed = tts.load_pruner(Path(__file__).resolve().parents[1] / "checkpoints/pruners/lift_l2c_budget_0.93")
+    assert set(pr.metadata) == set(committed.metadata)
+    assert pr.metadata["directions"] == "forward,timestep,rollout" and pr.metadata["trajectory_collection"] == "test"
     with tts.accelerate(pol, pruner=pr) as acc:
         pol.predict_action(obs_batch(2))
         pol.predict_action(obs_batch(2, 1))
@@ -308,11 +313,10 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
     # resuming a finished run trains no further epoch and keeps the history
     train_pruner.main(args + ["--resume"])
     assert len(load_pruner(out).metadata["history"]) == 3
-    import argparse
-
     import robot  # the eval report reads the pruner's training metadata from the same pair of files
+    from common.methods import parse_method
 
-    assert robot._pruner_metadata(argparse.Namespace(method="tts", pruner=out))["n_train_episodes"] == 4
+    assert robot._pruner_metadata(parse_method(f"pruner:{out}"))["n_train_episodes"] == 4
     import pruner_agreement
 
     with pytest.raises(ValueError, match="without --prior"):
