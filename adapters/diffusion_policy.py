@@ -5,11 +5,16 @@
 ``cond_pos_emb``, ``encoder``, ``decoder.layers.N``, ``ln_f``, ``head``, ``_dummy_variable``), so an
 official checkpoint's state dict loads unchanged. Written from the paper and that module's layout.
 
-Prunable branches: the SA / CA / FFN of every decoder layer (3L per step, spec §1); the condition
+Prunable branches: the SA / CA / FFN of every decoder layer (3 per layer and step); the condition
 encoder, embeddings, ``ln_f`` and ``head`` are never pruned. Two additions serve fast sampling:
 :meth:`TransformerForDiffusion.condition_memory` encodes the condition for all K denoising steps in
 one batched call (the obs tokens do not change across steps), and ``forward(..., memory=...)``
 accepts that precomputed memory.
+
+The adapter recognises the layout (attribute names and types), not these additions, so the official
+class works unmodified: its own forward runs with the decoder layers' branches hooked, and a learned
+pruner reads a condition memory that :func:`encode_condition` builds from the official attributes
+(for that it needs the timesteps of a call: accelerate the policy, whose ``noise_scheduler`` has them).
 """
 from __future__ import annotations
 
@@ -25,7 +30,7 @@ from tts.spec import Target, register_model_adapter
 from .schedulers import FastDDPM
 from .torch_layers import decoder_layer_spec, encoder_layer_spec
 
-__all__ = ["DPTransformerConfig", "TransformerForDiffusion", "SinusoidalPosEmb", "sample_actions"]
+__all__ = ["DPTransformerConfig", "TransformerForDiffusion", "SinusoidalPosEmb", "encode_condition", "sample_actions"]
 
 
 class SinusoidalPosEmb(nn.Module):
@@ -155,16 +160,7 @@ class TransformerForDiffusion(nn.Module):
         """Encoder output for all K timesteps at once: [B, K, T_cond, n_emb] (one batched call)."""
         if self.encoder_only:
             raise ValueError("encoder-only (BERT) DP transformers have no condition memory")
-        timesteps = torch.as_tensor(timesteps).reshape(-1)
-        K = timesteps.shape[0]
-        B = 1 if cond is None else cond.shape[0]
-        time = self.time_emb(timesteps.to(self.pos_emb.device))  # [K, D]
-        tokens = time[None, :, None, :].expand(B, K, 1, -1)
-        if self.obs_as_cond:
-            obs = self.cond_obs_emb(cond)  # [B, To, D]
-            tokens = torch.cat([tokens, obs[:, None].expand(B, K, -1, -1)], dim=2)
-        out = self._encode(tokens.reshape(B * K, tokens.shape[2], -1))
-        return out.reshape(B, K, out.shape[1], out.shape[2])
+        return encode_condition(self, timesteps, cond)
 
     # ------------------------------------------------------------------ forward
     def forward(self, sample: torch.Tensor, timestep: Any, cond: Optional[torch.Tensor] = None,
@@ -196,6 +192,29 @@ class TransformerForDiffusion(nn.Module):
         return self.head(self.ln_f(x))
 
 
+CONDITION_ATTRIBUTES = ("time_emb", "cond_obs_emb", "cond_pos_emb", "drop", "encoder")
+
+
+def encode_condition(model: nn.Module, timesteps: Any, cond: Optional[torch.Tensor],
+                     batch: Optional[int] = None) -> torch.Tensor:
+    """The condition memory of a DP transformer for all K ``timesteps`` of a call, [B, K, T_cond,
+    n_emb], in one batched encoder call, from the official attributes only (``time_emb``,
+    ``cond_obs_emb`` (None without observation tokens), ``cond_pos_emb``, ``drop``, ``encoder``): what
+    the official forward computes as ``memory`` at each step. ``batch`` expands a memory without
+    observation tokens to the batch."""
+    timesteps = torch.as_tensor(timesteps).reshape(-1)
+    K = timesteps.shape[0]
+    B = cond.shape[0] if cond is not None else (batch or 1)
+    time = model.time_emb(timesteps.to(model.pos_emb.device))  # [K, D]
+    tokens = time[None, :, None, :].expand(B, K, 1, -1)
+    if model.cond_obs_emb is not None:
+        obs = model.cond_obs_emb(cond)  # [B, To, D]
+        tokens = torch.cat([tokens, obs[:, None].expand(B, K, -1, -1)], dim=2)
+    tc = tokens.shape[2]
+    out = model.encoder(model.drop(tokens.reshape(B * K, tc, -1) + model.cond_pos_emb[:, :tc, :]))
+    return out.reshape(B, K, out.shape[1], out.shape[2])
+
+
 @torch.no_grad()
 def sample_actions(model: TransformerForDiffusion, cond: Optional[torch.Tensor], scheduler, *,
                    batch: Optional[int] = None, generator: Optional[torch.Generator] = None,
@@ -222,21 +241,51 @@ def sample_actions(model: TransformerForDiffusion, cond: Optional[torch.Tensor],
     return x
 
 
+def is_dp_transformer(model: Any) -> bool:
+    """Diffusion Policy's ``TransformerForDiffusion`` layout (ours or the official class), by its
+    attribute names and types: embeddings, ``ln_f``/``head``, and a decoder of
+    ``nn.TransformerDecoder`` or, in the encoder-only (BERT) mode, an ``nn.TransformerEncoder``."""
+    if not isinstance(model, nn.Module):
+        return False
+    typed = (("input_emb", nn.Linear), ("head", nn.Linear), ("ln_f", nn.Module), ("time_emb", nn.Module),
+             ("pos_emb", torch.Tensor))
+    if not all(isinstance(getattr(model, name, None), cls) for name, cls in typed):
+        return False
+    decoder, encoder = getattr(model, "decoder", None), getattr(model, "encoder", None)
+    return isinstance(decoder, nn.TransformerDecoder) or (decoder is None and isinstance(encoder, nn.TransformerEncoder))
+
+
+def has_condition_encoder(model: nn.Module) -> bool:
+    """Whether :func:`encode_condition` applies (a decoder model with the official condition attributes)."""
+    return (isinstance(getattr(model, "decoder", None), nn.TransformerDecoder)
+            and all(hasattr(model, a) for a in CONDITION_ATTRIBUTES)
+            and isinstance(model.cond_pos_emb, torch.Tensor) and isinstance(model.encoder, nn.Module))
+
+
 def _adapt(model: Any) -> Optional[Target]:
     """A DP transformer: its decoder layers (or BERT-mode encoder layers) are the branch sites."""
-    names = ("input_emb", "pos_emb", "ln_f", "head", "encoder", "decoder")
-    if not (isinstance(model, nn.Module) and all(hasattr(model, n) for n in names)):
+    if not is_dp_transformer(model):
         return None
-    chain = False
     if isinstance(model.decoder, nn.TransformerDecoder):
         sites = [(f"decoder.layers.{i}", m, decoder_layer_spec(m)) for i, m in enumerate(model.decoder.layers)]
         chain = True  # nn.TransformerDecoder: `for mod in layers: output = mod(output, memory, ...)`
-    elif isinstance(model.encoder, nn.TransformerEncoder):
-        sites = [(f"encoder.layers.{i}", m, encoder_layer_spec(m)) for i, m in enumerate(model.encoder.layers)]
     else:
-        return None
-    return Target(denoiser=model, sites=sites, condition=(model, "condition_memory"),
-                  description="Diffusion Policy transformer", chain=chain)
+        sites = [(f"encoder.layers.{i}", m, encoder_layer_spec(m)) for i, m in enumerate(model.encoder.layers)]
+        chain = False
+    target = Target(denoiser=model, sites=sites, description="Diffusion Policy transformer", chain=chain)
+    if callable(getattr(model, "condition_memory", None)):
+        target.condition = (model, "condition_memory")
+    elif not has_condition_encoder(model):
+        target.condition_note = ("an encoder-only Diffusion Policy transformer has no condition memory for a "
+                                 "pruner to read")
+    else:
+        target.condition_note = (
+            f"{type(model).__name__} has no condition_memory(timesteps, cond) method, and the module alone does "
+            "not know the timesteps of a sampling call. Accelerate the policy (tts.accelerate(policy, ...)): its "
+            "noise_scheduler gives them, and tts builds the memory from the official attributes "
+            f"{', '.join(CONDITION_ATTRIBUTES)}"
+        )
+    return target
 
 
 register_model_adapter("Diffusion Policy transformer", _adapt)

@@ -22,7 +22,8 @@ import torch.nn as nn
 from tts.io import atomic_path, checkpoint_pair
 from tts.spec import Target, register_model_adapter
 
-from .diffusion_policy import DPTransformerConfig, TransformerForDiffusion, _adapt as _adapt_model
+from .diffusion_policy import DPTransformerConfig, TransformerForDiffusion, encode_condition, has_condition_encoder
+from .diffusion_policy import _adapt as _adapt_model
 from .schedulers import FastDDPM
 
 Generators = Union[None, torch.Generator, Sequence[torch.Generator]]
@@ -246,17 +247,49 @@ def load_policy(path: Path, trust_pickle: bool = False) -> DiffusionTransformerL
     return policy.eval()
 
 
+def _policy_scheduler(policy: Any) -> Any:
+    """The policy's diffusers-style scheduler: ``noise_scheduler`` (official) or ``scheduler`` (ours)."""
+    for name in ("noise_scheduler", "scheduler"):
+        s = getattr(policy, name, None)
+        if s is not None and hasattr(s, "timesteps"):
+            return s
+    return None
+
+
+def _condition_from_inputs(policy: Any, model: nn.Module):
+    """``condition_of`` for a policy whose loop calls the transformer as ``model(x, t, cond)`` at every
+    step: the memory of all K steps from the scheduler's timesteps (set before its loop starts) and
+    the ``cond`` argument of step 0, built from the official attributes."""
+
+    def condition_of(args: tuple, kwargs: dict) -> torch.Tensor:
+        scheduler = _policy_scheduler(policy)
+        cond = kwargs.get("cond", args[2] if len(args) > 2 else None)
+        sample = kwargs.get("sample", args[0] if args else None)
+        return encode_condition(model, scheduler.timesteps, cond,
+                                batch=None if sample is None else sample.shape[0])
+
+    return condition_of
+
+
 def _adapt(policy: Any) -> Optional[Target]:
-    """A DP policy: its transformer is the denoiser; ``predict_action`` starts a sampling call and
-    ``reset`` ends an episode."""
-    if not (hasattr(policy, "predict_action") and isinstance(getattr(policy, "model", None), nn.Module)):
+    """A Diffusion Policy policy (ours or the official classes): its ``model`` is a DP transformer,
+    ``predict_action`` starts a sampling call and ``reset`` ends an episode."""
+    if not (callable(getattr(policy, "predict_action", None)) and isinstance(getattr(policy, "model", None), nn.Module)):
         return None
-    target = _adapt_model(policy.model)
+    model = policy.model
+    target = _adapt_model(model)
     if target is None:
         return None
     target.boundaries = [(policy, "predict_action")]
-    target.episode_resets = [(policy, "reset")]
+    target.episode_resets = [(policy, "reset")] if callable(getattr(policy, "reset", None)) else []
     target.description = f"Diffusion Policy ({type(policy).__name__})"
+    if target.condition is None and has_condition_encoder(model):
+        if _policy_scheduler(policy) is not None:
+            target.condition_of = _condition_from_inputs(policy, model)
+            target.condition_note = ""
+        else:
+            target.condition_note = (f"{type(policy).__name__} has no noise_scheduler with the timesteps of a "
+                                     "sampling call, and its model no condition_memory(timesteps, cond) method")
     return target
 
 

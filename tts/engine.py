@@ -119,6 +119,9 @@ class Accelerator:
         self._owner_of = self._build_owners()
         self._profile_key: Optional[tuple] = None
         self._timing: dict[str, float] = {}  # of the call about to start (condition encoder)
+        self._observed = False  # the plan has seen the condition memory of the call about to start
+        # the condition memory from the denoiser's step-0 inputs, for loops that encode no condition up front
+        self._condition_of = target.condition_of if plan.reads_condition else None
 
         self._patches = Patches(self)
         try:
@@ -219,17 +222,19 @@ class Accelerator:
                 self._timing = {"encoder": time.perf_counter() - t0}
                 if self.plan.reads_condition and not self.removed:
                     self.plan.observe(memory, dense=self.tracker.episode_dense)
+                    self._observed = True
                 return memory
 
             return call
 
         if self.target.condition is not None:
             self._patches.patch(*self.target.condition, make_condition)
-        elif self.plan.reads_condition:
+        elif self.plan.reads_condition and self.target.condition_of is None:
             raise ValueError(
                 f"{self.plan.describe()} reads the condition memory, but the adapter of "
                 f"{self.target.description or type(self.target.denoiser).__name__} declares no "
                 "Target.condition (the function that encodes the condition for all steps)"
+                + (f": {self.target.condition_note}" if self.target.condition_note else "")
             )
 
         def make_reset(orig):
@@ -321,6 +326,12 @@ class Accelerator:
         self.cache.begin_call()
         if dense:
             self.cache.new_episode()
+        if self._condition_of is not None and not self._observed:
+            t0 = time.perf_counter()
+            memory = self._condition_of(args, kwargs)
+            self._timing = {"encoder": time.perf_counter() - t0}
+            self.plan.observe(memory, dense=dense)
+        self._observed = False
         self.plan.begin_call(len(self.calls), batch)
         if len(self.calls) >= self.max_records:
             self.calls.pop(0)

@@ -128,6 +128,11 @@ class Target:
     condition: (object, method name) of the function that encodes the condition for all K steps of
         a call at once ([B, K, Tc, D]); its output is what a learned pruner reads (DP-T:
         ``model.condition_memory``).
+    condition_of: ``(args, kwargs) -> [B, K, Tc, D]``, the condition memory of the call that a
+        denoiser forward with these arguments starts; for sampling loops that never call a
+        ``condition`` function (Diffusion Policy's own loop encodes the condition inside every
+        forward). Used at step 0 of a call for which no ``condition`` call was seen.
+    condition_note: why the adapter could declare neither, shown when a plan needs the condition.
     chain: the sites run one after another on one residual stream with nothing in between
         (``for blk in blocks: x = blk(x, ...)``, x the first positional argument). With every
         site's ``BlockSpec.residual``, whole-step reuse is fused (see the module docstring).
@@ -139,6 +144,8 @@ class Target:
     episode_resets: list[tuple[Any, str]] = field(default_factory=list)
     supports_rollout: Optional[bool] = None
     condition: Optional[tuple[Any, str]] = None
+    condition_of: Optional[Callable[[tuple, dict], Any]] = None
+    condition_note: str = ""
     timestep_of: Callable[[tuple, dict], Any] = _default_timestep
     batch_of: Callable[[tuple, dict], int] = _first_tensor_batch
     description: str = ""
