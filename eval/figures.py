@@ -1,11 +1,11 @@
 """Figures of the robot experiments (PNG under docs/), from committed checkpoints and result JSONs.
 
-    python eval/figures.py masks --task lift --checkpoint checkpoints/lift_dpt --pruner checkpoints/lift_pruner \
+    python eval/figures.py masks --task lift --checkpoint checkpoints/lift_dpt --pruner checkpoints/pruners/lift_tts_0.93 \
         --trajectories data/trajectories/lift.pt          # pruning masks per rollout iteration (paper Figs 12-16)
     python eval/figures.py similarity --task lift --checkpoint checkpoints/lift_dpt \
         --trajectories data/trajectories/lift.pt          # forward / timestep / rollout feature similarity (Fig 9)
-    python eval/figures.py data-efficiency --task lift    # success vs trajectories (Figs 10-11; scripts/data_efficiency.sh,
-                                                          # scripts/pruner_data_efficiency.sh)
+    python eval/figures.py data-efficiency --task lift    # success vs trajectories (Figs 10-11; recipes/data_efficiency.sh,
+                                                          # recipes/pruner_data_efficiency.sh)
 
 Masks and similarities use held-out recorded episodes (index >= ``--first-episode``, past the
 pruner's training and validation sets) with the recorded noise seeds.
@@ -126,13 +126,10 @@ def similarity(args) -> Path:
     return out
 
 
-def _prior_calibration(command: str) -> Optional[int]:
+def _prior_calibration(prior: Optional[str]) -> Optional[int]:
     """Calibration trajectories of the schedule a pruner was started from (its ``--prior``), if any."""
-    cmd = command.split()
-    if "--prior" not in cmd or cmd.index("--prior") + 1 >= len(cmd):
-        return None
-    path = REPO / cmd[cmd.index("--prior") + 1]
-    return json.loads(path.read_text()).get("calibration_episodes") if path.exists() else None
+    path = REPO / prior if prior else None
+    return json.loads(path.read_text()).get("calibration_episodes") if path and path.exists() else None
 
 
 def _schedule_label(sched: dict) -> str:
@@ -145,7 +142,7 @@ def _schedule_label(sched: dict) -> str:
 
 def _efficiency_rows(task: str) -> dict[str, list[tuple[int, float]]]:
     """(training or calibration trajectories, success) per series, from finished result JSONs:
-    TTS pruners by their ``n_train_episodes``; searched whole-step schedules (``--plan file:``) by
+    TTS pruners by their ``n_train_episodes``; searched whole-step schedules (``file:`` rows) by
     their ``calibration_episodes``."""
     series: dict[str, list[tuple[int, float]]] = {}
     for path in sorted((REPO / "results" / "robot").glob(f"{task}_*.json")):
@@ -155,16 +152,17 @@ def _efficiency_rows(task: str) -> dict[str, list[tuple[int, float]]]:
         meta = r.get("pruner_metadata") or {}
         if "n_train_episodes" in meta:
             if abs(r["tts"]["sparsity_non_dense_calls"] - 0.93) < 0.01:  # the pruners run at 93%
-                pipeline = meta["n_train_episodes"] == _prior_calibration(meta.get("command", ""))
+                pipeline = meta["n_train_episodes"] == _prior_calibration(meta.get("prior"))
                 label = ("TTS: search + step-query pruner on the same trajectories" if pipeline  # pruner_data_efficiency.sh
                          else "TTS pruners near rho=0.93, recipes differ (training trajectories)")
                 series.setdefault(label, []).append((meta["n_train_episodes"], r["success_rate"]))
             continue
-        cmd = r.get("provenance", {}).get("command", "").split()
-        plan = next((a.split(":", 1)[1] for a in cmd if a.startswith("file:")), None)
-        if plan is None or not (REPO / plan).exists():
+        if not r["method"].startswith("file:") or "+" in r["method"]:
             continue
-        sched = json.loads((REPO / plan).read_text())
+        plan = REPO / "results" / "schedules" / f"{r['method'][len('file:'):]}.json"
+        if not plan.exists():
+            continue
+        sched = json.loads(plan.read_text())
         if sched.get("method", "").startswith("compute steps shared"):
             series.setdefault(_schedule_label(sched), []).append((sched["calibration_episodes"], r["success_rate"]))
     return series

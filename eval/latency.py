@@ -3,7 +3,8 @@
     python eval/latency.py --task lift --checkpoint checkpoints/lift_dpt \
         --method pruner:checkpoints/pruners/lift_tts_0.93@0.93 --trajectories data/trajectories/lift.pt --batch 1 28
 
-``--method``: the vocabulary of eval/robot.py (eval/common/methods.py). Protocol: real observation windows from recorded dense trajectories. Per
+``--method``: the vocabulary of eval/robot.py (eval/common/methods.py; ``ddim:K`` times the DDIM-K sampler,
+dense). Protocol: real observation windows from recorded dense trajectories. Per
 trial and batch size B, take B episodes; ``reset()``; frame 0 (the dense call that fills the rollout
 cache, untimed); then time the calls on frames 1..``--frames``. Dense is the untouched policy (its own
 fast loop: batched condition encoder, precomputed DDPM coefficients), timed in the same trials,
@@ -15,6 +16,7 @@ of the accelerated call (encoder, pruner, wait, decoder, total) from ``summary()
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -75,18 +77,24 @@ def main(argv=None) -> dict:
     ap.add_argument("--frames", type=int, default=4, help="timed calls per trial (after the dense frame 0)")
     ap.add_argument("--first-episode", type=int, default=96, help="episodes used (default: past the pruner's training set)")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--resume", action="store_true", help="skip when the result file exists")
     args = parse_args(ap, argv)
     method = parse_method(args.method, kinds=ROBOT_KINDS, forecast=args.forecast)
-    if not method.engine:
-        ap.error(f"{args.method}: latency.py times tts methods against dense (fewer-step samplers: eval/robot.py)")
     label = method.label
     suffix = "" if args.parallel == "auto" else f"_parallel-{args.parallel}"
     out_path = args.out or REPO / "results" / "robot" / f"latency_{args.task}_{method.slug}{suffix}.json"
+    if args.resume and out_path.exists():
+        print(f"[skip] {out_path} exists")
+        return json.loads(out_path.read_text())
     episodes, _ = load_trajectories(args.trajectories)
     pool = episodes[args.first_episode:] or episodes
     dense = load_policy(args.checkpoint)
     fast = load_policy(args.checkpoint)
-    acc = methods.install(fast, method, parallel={"auto": "auto", "on": True, "off": False}[args.parallel])
+    if method.kind == "ddim":  # fewer sampling steps, every branch computed (the summary counts its MACs)
+        fast.set_sampler("ddim", method.n)
+        acc = methods.install(fast, parse_method("dense", kinds=ROBOT_KINDS))
+    else:
+        acc = methods.install(fast, method, parallel={"auto": "auto", "on": True, "off": False}[args.parallel])
     rows = []
     for B in args.batch:
         eps = [pool[i % len(pool)] for i in range(B)]

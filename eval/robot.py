@@ -115,7 +115,7 @@ def _pruner_metadata(method: Method) -> Optional[dict]:
         return None
     meta = json.loads(checkpoint_pair(method.path)[1].read_text())
     keep = ("n_train_episodes", "sparsity", "paired", "loss_space", "static", "directions", "epochs", "git_sha",
-            "command", "pruner_macs_per_call", "best_epoch")
+            "command", "pruner_macs_per_call", "best_epoch", "prior")
     return {"path": str(method.path), "config": meta["config"],
             **{k: v for k, v in meta.get("metadata", {}).items() if k in keep}}
 

@@ -1,6 +1,10 @@
 """Collect result JSONs into markdown tables (no number is typed by hand).
 
-    python eval/tables.py   # results/{robot,image}/TABLE.md and the README's tables, from their JSON files
+    python eval/tables.py
+
+Fills the marked blocks (``<!-- NAME-table:begin (eval/tables.py) -->`` ... ``<!-- NAME-table:end -->``)
+of docs/results/robot.md, docs/results/image.md and the README's headline tables from the JSON files
+in results/robot/ and results/image/, and renders the image sample grids.
 """
 from __future__ import annotations
 
@@ -27,7 +31,7 @@ def robot_table(folder: Path) -> str:
         sparsity = info.get("sparsity_non_dense_calls", info.get("sparsity_all_calls", 0))
         seeds = r["provenance"]["seeds"]
         rows.append(
-            f"| {r['task']} | {r['method']} | {r['success_rate']:.2f} | {r['episodes_done']}/{r['episodes_requested']} | "
+            f"| {r['task']} | `{r['method']}` | {r['success_rate']:.2f} | {r['episodes_done']}/{r['episodes_requested']} | "
             f"{seeds[0]}..{seeds[-1]} | {r['batch']} | {r['latency_ms']['median']:.1f} / {r['latency_ms']['p90']:.1f} | "
             f"{r['calls_per_s']:.2f} | {r['actions_per_s_per_env']:.1f} | {sparsity:.3f} | "
             f"{ratio:.2f} | `{r['provenance']['git_sha'][:10]}` |")
@@ -52,7 +56,7 @@ def summary_table(folder: Path) -> str:
         std = f"{(sum((x - _mean(sr)) ** 2 for x in sr) / (len(sr) - 1)) ** 0.5:.2f}" if len(sr) > 1 else "-"
         first = ", ".join(str(r["provenance"]["seeds"][0]) for r in rs)
         paired = "-" if method == "dense" else paired_vs_dense(rs, runs.get((task, "dense"), []))
-        rows.append(f"| {task} | {method} | {_mean(sr):.2f} | {std} | {len(rs)}: {first} | {sparsity:.3f} | {paired} |")
+        rows.append(f"| {task} | `{method}` | {_mean(sr):.2f} | {std} | {len(rs)}: {first} | {sparsity:.3f} | {paired} |")
     return "\n".join(rows) + "\n"
 
 
@@ -128,7 +132,7 @@ def latency_table(folder: Path) -> str:
             m = row["macs_per_call"]
             brk = ", ".join(f"{k} {v:.1f}" for k, v in row["timing_median_ms"].items())
             rows.append(
-                f"| {r['task']} | {r['method']} | {r.get('parallel', 'auto')} | {row['batch']} | {row['dense_ms']['median']:.1f} | "
+                f"| {r['task']} | `{r['method']}` | {r.get('parallel', 'auto')} | {row['batch']} | {row['dense_ms']['median']:.1f} | "
                 f"{row['accelerated_ms']['median']:.1f} | **{row['speedup']:.2f}x** | {row['sparsity']:.3f} | "
                 f"{m['dense'] / max(m['realised_with_pruner'], 1):.2f} | {m['pruner'] / m['dense']:.4f} | {brk} | "
                 f"`{r['provenance']['git_sha'][:10]}` |")
@@ -164,9 +168,17 @@ def headroom_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
-IMAGE_ROWS = ("dense", "fora_n5", "taylorseer_n5_o2", "toca_n6", "duca_n6", "diffusers_fbc",
-              "diffusers_taylorseer_n5_o2", "static_bac", "tts", "static_bac_taylor2", "tts_taylor2", "steps_o2",
-              "tts_steps_o2")
+IMAGE_ORDER = ("dense", "every_n:5:timestep", "taylorseer:5:2", "toca:6@0.8", "duca:6@0.8", "diffusers:fbc@0.8",
+               "diffusers:taylorseer:5:2", "file:digits_bac_0.8", "pruner:digits_tts_0.8@0.8",
+               "file:digits_bac_0.8+taylor2", "pruner:digits_tts_taylor2_0.8@0.8+taylor2",
+               "file:digits_steps_0.8+taylor2", "pruner:digits_tts_steps_0.8@0.8+taylor2")
+
+
+def image_runs(folder: Path) -> list[dict]:
+    """eval/imagenet.py results (digits_*.json), in IMAGE_ORDER, then any other label alphabetically."""
+    runs = [json.loads(p.read_text()) for p in sorted(folder.glob("digits_*.json"))]
+    rank = {label: i for i, label in enumerate(IMAGE_ORDER)}
+    return sorted(runs, key=lambda r: (rank.get(r["method"], len(rank)), r["method"]))
 
 
 def image_table(folder: Path) -> str:
@@ -179,11 +191,8 @@ def image_table(folder: Path) -> str:
             + "".join(f"wall-clock speed-up, batch {b} | " for b in batches) + "s/image (FID run) | git SHA |",
             "|---|---|---|---|---|---|---|" + "---|" * len(batches) + "---|---|"]
     dense_fid = None
-    for name in IMAGE_ROWS:
-        path = folder / f"digits_{name}.json"
-        if not path.exists():
-            continue
-        r = json.loads(path.read_text())
+    for r in image_runs(folder):
+        name = r["method"]
         if name == "dense":
             dense_fid = r.get("fid")
         rel = f"{100 * (r['fid'] / dense_fid - 1):+.1f}%" if dense_fid and "fid" in r and name != "dense" else "-"
@@ -192,7 +201,7 @@ def image_table(folder: Path) -> str:
              f"{lat_rows[b]['methods'][name]['speedup']:.2f}x | " if name in lat_rows[b]["methods"] else "- | ")
             for b in batches)
         plan = r["plan"] + (f" + Taylor forecast O={_forecast_order(r)}" if _forecast_order(r) else "")
-        rows.append(f"| {name} | {plan} | {r['sparsity']:.3f} | {r['macs_ratio_with_pruner']:.2f}x | "
+        rows.append(f"| `{name}` | {plan} | {r['sparsity']:.3f} | {r['macs_ratio_with_pruner']:.2f}x | "
                     f"{r.get('fid', float('nan')):.2f} | {rel} | {r.get('sfid', float('nan')):.2f} | {speed}"
                     f"{r['s_per_image']:.4f} | `{r['provenance']['git_sha'][:10]}` |")
     return "\n".join(rows) + "\n"
@@ -202,7 +211,7 @@ def _forecast_order(r: dict) -> int:
     """Order of the Taylor forecast of a run (0: plain reuse), from its JSON or its command."""
     if r.get("forecast"):
         return int(r["forecast"])
-    if r.get("method") == "taylorseer":
+    if r.get("method_spec", r.get("method", "")).startswith("taylorseer"):
         if r.get("taylor_order"):
             return int(r["taylor_order"])
         cmd = r["provenance"].get("command", "").split()
@@ -216,10 +225,7 @@ def sample_grids(folder: Path) -> list[Path]:
     from PIL import Image
 
     out = []
-    for name in IMAGE_ROWS:
-        npz = folder / f"digits_{name}.npz"
-        if not npz.exists():
-            continue
+    for npz in sorted(folder.glob("digits_*.npz")):
         arr = np.load(npz)["arr_0"][:100]
         n, h, w, c = arr.shape
         side = int(np.ceil(n / 10))
@@ -227,54 +233,96 @@ def sample_grids(folder: Path) -> list[Path]:
         for i, img in enumerate(arr):
             r, col = divmod(i, 10)
             grid[r * (h + 1):r * (h + 1) + h, col * (w + 1):col * (w + 1) + w] = img
-        png = folder / f"grid_{name}.png"
+        png = folder / f"grid_{npz.stem[len('digits_'):]}.png"
         Image.fromarray(grid).resize((grid.shape[1] * 4, grid.shape[0] * 4), Image.NEAREST).save(png)
         out.append(png)
     return out
 
 
-def image_text(folder: Path) -> str:
-    return ("# Image results (digits DiT)\n\nGenerated by `python eval/tables.py` from the JSON files in this "
-            "folder (`bash scripts/image_table.sh` runs everything). 2000 samples per method (class = index % 10, "
-            "noise seeded per index, the same for every method), DDIM-50, CFG 1.5, FID/sFID against the 1797 "
-            "scikit-learn digits (16x16, eval/fid.py's Inception). MACs: all sampled rows, embedders excluded, "
-            "pruner included. Wall-clock: eval/image_latency.py, every method against dense in one process.\n\n"
-            + image_table(folder))
+HEADLINE_ROBOT = {"lift": ("dense", "ddim:7", "file:lift_steps_0.93", "pruner:lift_tts_0.93@0.93"),
+                  "can": ("dense", "ddim:7", "file:can_steps_0.93_256calls", "pruner:can_tts_0.93_256calls@0.93")}
+HEADLINE_IMAGE = ("dense", "every_n:5:timestep", "toca:6@0.8", "diffusers:fbc@0.8", "pruner:digits_tts_0.8@0.8",
+                  "pruner:digits_tts_steps_0.8@0.8+taylor2")
+
+
+def headline_robot(folder: Path) -> str:
+    """README: success over the test seeds, paired difference to dense, and the speed-up of a policy call
+    measured against dense in one process (eval/latency.py) at batch 1 and 28, where it was measured."""
+    runs: dict[tuple[str, str], list[dict]] = {}
+    for path in sorted(folder.glob("*.json")):
+        r = json.loads(path.read_text())
+        if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
+            runs.setdefault((r["task"], r["method"]), []).append(r)
+    speed: dict[tuple[str, str], dict[int, float]] = {}
+    for path in sorted(folder.glob("latency_*.json")):
+        r = json.loads(path.read_text())
+        if r.get("parallel", "auto") == "auto":
+            speed[(r["task"], r["method"])] = {row["batch"]: row["speedup"] for row in r["rows"]}
+    rows = ["| task | method | success (test episodes) | vs dense, paired (95% CI) | speed-up batch 1 / 28 "
+            "| MACs dense DDPM-100 / method |", "|---|---|---|---|---|---|"]
+    for task, methods in HEADLINE_ROBOT.items():
+        for method in methods:
+            rs = runs.get((task, method))
+            if not rs:
+                continue
+            n = sum(r["episodes_done"] for r in rs)
+            success = sum(r["success_rate"] * r["episodes_done"] for r in rs) / n
+            paired = "-" if method == "dense" else paired_vs_dense(rs, runs.get((task, "dense"), [])).split(" on ")[0]
+            sp = speed.get((task, method), {})
+            sp_text = " / ".join(f"{sp[b]:.2f}x" if b in sp else "-" for b in (1, 28)) if sp else "-"
+            lc = rs[0].get("tts", {}).get("last_call", {})
+            realised = lc.get("macs_realised_with_pruner", lc.get("macs_realised"))
+            ref = runs[(task, "dense")][0]["tts"]["last_call"]["macs_dense"] if (task, "dense") in runs else None
+            macs = f"{ref / realised:.1f}x" if realised and ref else "-"
+            rows.append(f"| {task} | `{method}` | {success:.2f} ({n}) | {paired} | {sp_text} | {macs} |")
+    return "\n".join(rows) + "\n"
+
+
+def headline_image(folder: Path) -> str:
+    """README: FID and wall-clock speed-up of the main image rows (the full table: docs/results/image.md)."""
+    lat_path = folder / "latency.json"
+    lat = json.loads(lat_path.read_text()) if lat_path.exists() else {"rows": []}
+    batches = [row["batch"] for row in lat["rows"]]
+    by = {r["method"]: r for r in image_runs(folder)}
+    rows = ["| method | FID | MACs speed-up | " + " | ".join(f"wall-clock speed-up, batch {b}" for b in batches) + " |",
+            "|---|---|---|" + "---|" * len(batches)]
+    for name in HEADLINE_IMAGE:
+        r = by.get(name)
+        if r is None:
+            continue
+        speeds = " | ".join(("1.00x" if name == "dense" else
+                             f"{row['methods'][name]['speedup']:.2f}x" if name in row["methods"] else "-")
+                            for row in lat["rows"])
+        rows.append(f"| `{name}` | {r.get('fid', float('nan')):.2f} | {r['macs_ratio_with_pruner']:.2f}x | {speeds} |")
+    return "\n".join(rows) + "\n"
+
+
+def fill(path: Path, tables: dict[str, str]) -> None:
+    """Replace every marked block of ``path`` whose name is in ``tables``; a page without a block that
+    ``tables`` names is an error (a table would silently go missing)."""
+    body = path.read_text()
+    for name, table in tables.items():
+        begin, end = f"<!-- {name}-table:begin (eval/tables.py) -->", f"<!-- {name}-table:end -->"
+        if begin not in body or end not in body:
+            raise SystemExit(f"{path} has no block {begin} ... {end}")
+        head, rest = body.split(begin, 1)
+        body = head + begin + "\n" + table + end + rest.split(end, 1)[1]
+    write_atomic(path, body)
 
 
 def main() -> None:
-    image = REPO / "results" / "image"
-    if image.exists() and any(image.glob("digits_*.json")):
+    robot, image = REPO / "results" / "robot", REPO / "results" / "image"
+    docs = REPO / "docs" / "results"
+    fill(docs / "robot.md", {"robot": summary_table(robot), "latency": latency_table(robot),
+                             "agreement": agreement_table(robot), "headroom": headroom_table(robot),
+                             "runs": robot_table(robot)})
+    readme = {"headline-robot": headline_robot(robot)}
+    if any(image.glob("digits_*.json")):
         sample_grids(image)
-        write_atomic(image / "TABLE.md", image_text(image))
-    folder = REPO / "results" / "robot"
-    text = ("# Robot results\n\nGenerated by `python eval/tables.py` from the JSON files in this folder "
-            "(each holds its command, git SHA, seeds, machine and per-episode outcomes). Policies are trained "
-            "on scripted-expert demonstrations, which are far more uniform than human data. Sparsity: fraction of "
-            "reused (step, branch) decisions in calls after the first of each episode (with the rollout "
-            "direction the first call is dense). MACs of the last call, decoder + rest of the model, pruner "
-            "included.\n\n## Success, mean over evaluation seeds\n\n" + summary_table(folder)
-            + "\n## Every run\n\n" + robot_table(folder)
-            + "\n## Policy-call latency, accelerated vs dense in the same process (`eval/latency.py`)\n\n"
-            + latency_table(folder)
-            + "\n## Learned pruner vs the schedule it started from (`eval/pruner_agreement.py`)\n\n"
-            + agreement_table(folder)
-            + "\n## Headroom for per-observation decisions (`eval/oracle_headroom.py`)\n\n"
-            + headroom_table(folder))
-    write_atomic(folder / "TABLE.md", text)
-    readme = REPO / "README.md"
-    body = readme.read_text()
-    tables = [("robot", summary_table(folder)), ("latency", latency_table(folder)),
-              ("agreement", agreement_table(folder)), ("headroom", headroom_table(folder))]
-    if image.exists() and any(image.glob("digits_*.json")):
-        tables.append(("image", image_table(image)))
-    for name, table in tables:
-        begin, end = f"<!-- {name}-table:begin (eval/tables.py) -->", f"<!-- {name}-table:end -->"
-        if begin in body and end in body:  # the README shows the same generated tables
-            head, rest = body.split(begin, 1)
-            body = head + begin + "\n" + table + end + rest.split(end, 1)[1]
-    write_atomic(readme, body)
-    print(text)
+        fill(docs / "image.md", {"image": image_table(image)})
+        readme["headline-image"] = headline_image(image)
+    fill(REPO / "README.md", readme)
+    print(f"filled {docs / 'robot.md'}, {docs / 'image.md'} and README.md")
 
 
 if __name__ == "__main__":
