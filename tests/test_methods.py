@@ -56,9 +56,12 @@ def test_bad_specs_say_what_is_wrong(spec, kinds, message):
         parse_method(spec, kinds=kinds)
 
 
-def test_forecast_only_for_schedules_and_pruners():
-    with pytest.raises(ValueError, match="--forecast applies to file: and pruner:"):
-        parse_method("uniform:0.9:timestep", forecast=1)
+def test_forecast_only_for_timestep_reuse():
+    with pytest.raises(ValueError, match="applies to timestep reuse of file:"):
+        parse_method("toca:6@0.8", forecast=1)
+    with pytest.raises(ValueError, match="timestep reuse only"):
+        parse_method("uniform:0.9:rollout+taylor1")
+    assert parse_method("uniform:0.93:timestep+taylor1").label == "uniform:0.93:timestep+taylor1"
     with pytest.raises(ValueError, match="disagree"):
         parse_method("file:x.json+taylor2", forecast=1)
 

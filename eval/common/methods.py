@@ -20,8 +20,8 @@ spec                            method
 ``diffusers:taylorseer:N:O``    diffusers' TaylorSeer cache (image)
 ==============================  ================================================================
 
-``+taylorO`` after a ``file:`` or ``pruner:`` spec (or ``--forecast O``, a separate option) adds a
-Taylor forecast of order O to timestep reuse; it is part of the row label.
+``+taylorO`` after a ``file:``, ``pruner:``, ``uniform:`` or ``every_n:`` spec (or ``--forecast O``, a
+separate option) adds a Taylor forecast of order O to timestep reuse; it is part of the row label.
 """
 from __future__ import annotations
 
@@ -33,8 +33,8 @@ from typing import Any, Optional
 
 __all__ = ["Method", "parse_method", "install", "ROBOT_KINDS", "IMAGE_KINDS", "VOCABULARY"]
 
-VOCABULARY = ("dense | ddim:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | file:SCHEDULE.json[+taylorO] | "
-              "pruner:PATH[@RHO][+taylorO] | taylorseer:N:O | toca:N[:RATIO][@RHO] | duca:N[:RATIO][@RHO] | "
+VOCABULARY = ("dense | ddim:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | file:SCHEDULE.json | "
+              "pruner:PATH[@RHO] (+taylorO after any of the four) | taylorseer:N:O | toca:N[:RATIO][@RHO] | duca:N[:RATIO][@RHO] | "
               "diffusers:fbc[:THRESHOLD][@RHO] | diffusers:taylorseer:N:O")
 ROBOT_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "file", "pruner", "taylorseer"})
 IMAGE_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "file", "pruner", "taylorseer", "toca", "duca",
@@ -121,9 +121,9 @@ def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0
         raise ValueError(f"unknown method {spec!r}; the vocabulary is {VOCABULARY}")
     if kind not in kinds:
         raise ValueError(f"method {kind!r} is not available in this suite (available: {', '.join(sorted(kinds))})")
-    if forecast and kind not in ("file", "pruner"):
-        raise ValueError(f"--forecast applies to file: and pruner: methods (taylorseer:N:O has its own order), "
-                         f"not to {spec!r}")
+    if forecast and kind not in ("file", "pruner", "uniform", "every_n"):
+        raise ValueError(f"a Taylor forecast (+taylorO, --forecast) applies to timestep reuse of file:, pruner:, "
+                         f"uniform: and every_n: methods (taylorseer:N:O has its own order), not to {spec!r}")
     body, rho = _budget(spec)
     if rho is not None and kind not in ("pruner", "toca", "duca", "diffusers"):
         raise ValueError(f"method {spec!r}: an '@RHO' budget applies to pruner:, toca:, duca: and diffusers:fbc")
@@ -144,15 +144,17 @@ def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0
         if len(parts) != 3:
             raise bad
         direction = _direction(parts[2], spec)
+        if forecast and direction != "timestep":
+            raise ValueError(f"method {spec!r}: a Taylor forecast applies to timestep reuse only")
         if kind == "uniform":
             s = _number(parts[1], float, "the sparsity", spec)
             if not 0.0 <= s < 1.0:
                 raise ValueError(f"method {spec!r}: sparsity must be in [0, 1), got {s}")
-            return Method(spec, kind, sparsity=s, direction=direction)
+            return Method(spec, kind, sparsity=s, direction=direction, forecast=forecast)
         n = _number(parts[1], int, "the interval", spec)
         if n < 1:
             raise ValueError(f"method {spec!r}: the interval must be >= 1")
-        return Method(spec, kind, n=n, direction=direction)
+        return Method(spec, kind, n=n, direction=direction, forecast=forecast)
     if kind in ("file", "pruner"):
         path = body.split(":", 1)[1] if ":" in body else ""
         if not path:
@@ -209,9 +211,11 @@ def install(model: Any, method: Method, *, parallel: Any = "auto", memory_width:
     if method.kind == "dense":
         return tts.accelerate(model, _DIRS if _rollout_ok(model) else _DIRS[:2], plan=tts.plans.dense())
     if method.kind == "uniform":
-        return tts.accelerate(model, (method.direction,), plan=tts.plans.uniform(method.sparsity, method.direction))
+        return tts.accelerate(model, (method.direction,), plan=tts.plans.uniform(method.sparsity, method.direction),
+                              forecast=method.forecast)
     if method.kind == "every_n":
-        return tts.accelerate(model, (method.direction,), plan=tts.plans.every_n(method.n, method.direction))
+        return tts.accelerate(model, (method.direction,), plan=tts.plans.every_n(method.n, method.direction),
+                              forecast=method.forecast)
     if method.kind == "taylorseer":
         return tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(method.n, "timestep"),
                               forecast=method.order)
