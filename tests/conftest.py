@@ -18,7 +18,7 @@ torch.set_num_threads(2)
 
 @pytest.fixture(scope="module")
 def one_thread():
-    """Torch on one thread for a module (heavy tests on the 2-core CI machine); restored afterwards."""
+    """Torch on one thread for a module (heavy tests on small CI machines); restored afterwards."""
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     yield

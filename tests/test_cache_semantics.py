@@ -1,9 +1,10 @@
-"""Each direction returns exactly the cached tensor spec §2 prescribes; skipped branches never run.
+"""Each direction returns exactly the cached tensor its definition (tts.cache) prescribes; skipped
+branches never run.
 
 A hand-built 3-block toy (2 branch kinds per block) logs every branch call (which sample rows it got,
 what it returned) and every delta the engine handed back. A reference simulator, written from the
-spec and independent of the engine, replays the same decisions per sample and says which logged
-tensor each returned delta must be.
+direction definitions and independent of the engine, replays the same decisions per sample and says
+which logged tensor each returned delta must be.
 """
 from __future__ import annotations
 

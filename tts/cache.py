@@ -1,4 +1,4 @@
-"""The three reuse caches (spec §2), in one place.
+"""The three reuse caches, in one place.
 
 - forward  F[kind]: output of the most recently computed branch of that kind, in execution order
   (layer-major within a step, then step-major); cleared at the start of every sampling call.

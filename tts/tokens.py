@@ -16,7 +16,8 @@ not their code. Which tokens to refresh, per sample, is a score plus a staleness
 - ``score="attention"`` (ToCa): the attention a token *receives* in the same block's self-attention
   at the latest full step (mean over heads and queries). Needs attention probabilities, so the
   engine asks the block family's attention probe (:attr:`tts.spec.BranchSpec.probe`) for them at
-  full steps; its MACs are counted as overhead (``CallRecord.extra_macs``). Not FlashAttention-friendly.
+  full steps (materialised attention maps: not FlashAttention-friendly; the summary's MACs count the
+  attention products once, as for a fused kernel).
 - ``score="duplicate"`` (DuCa-style, FlashAttention-friendly): tokens whose cached branch output is
   least similar (cosine) to the mean token output of their sample are refreshed first; redundant,
   near-duplicate tokens keep the cache. Costs O(N * D) per refresh, no attention maps.
