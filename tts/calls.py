@@ -69,6 +69,7 @@ class CallTracker:
         return False
 
     def end_step(self) -> None:
+        """The current step finished: the next forward is step ``k + 1`` (or a new call)."""
         self.k += 1
 
     def _start_call(self, batch: int) -> None:

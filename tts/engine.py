@@ -187,7 +187,7 @@ class Accelerator:
                     if ex.passthrough or not ex.in_step:
                         return orig(*args, **kwargs)
                     if ex.fused:
-                        return ex.fused_block(site.name, args)
+                        return ex.fused_block(site, args)
                     return site.spec.forward(site.module, site.runner, *args, **kwargs)
 
                 return forward

@@ -126,6 +126,7 @@ class BranchExecutor:
 
     # ------------------------------------------------------------------ per call / per step
     def begin_call(self, record: CallRecord, batch: int, device: torch.device, dense: bool) -> None:
+        """A new sampling call: decisions and branch work go to ``record``; ``dense``: compute everything."""
         self.record = record
         self.batch = batch
         self.device = device
@@ -204,10 +205,10 @@ class BranchExecutor:
         return row, groups, not any(row) and not groups, all_reuse
 
     # ------------------------------------------------------------------ branch execution
-    def fused_block(self, name: str, args: tuple) -> torch.Tensor:
+    def fused_block(self, site: Site, args: tuple) -> torch.Tensor:
         """A block of a fused step: the first adds every branch's reused output, the rest pass x on."""
         if not args or not isinstance(args[0], torch.Tensor):
-            raise RuntimeError(f"block {name} was called without its residual stream as first positional "
+            raise RuntimeError(f"block {site.name} was called without its residual stream as first positional "
                                "argument, which Target.chain promises; build the Target with chain=False")
         x = args[0]
         if not self._fuse_pending:

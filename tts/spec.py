@@ -170,8 +170,10 @@ def register_model_adapter(name: str, adapt: ModelAdapter) -> None:
 
 
 def block_families() -> Sequence[tuple[str, BlockMatcher]]:
+    """The registered (name, matcher) block families, in registration order."""
     return tuple(_BLOCK_FAMILIES)
 
 
 def model_adapters() -> Sequence[tuple[str, ModelAdapter]]:
+    """The registered (name, adapter) model adapters, tried in registration order."""
     return tuple(_MODEL_ADAPTERS)

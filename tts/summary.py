@@ -36,6 +36,9 @@ class CallRecord:
 
 @dataclass
 class Summary:
+    """The recorded calls of an accelerator with its branch layout (``Accelerator.summary()``);
+    ``str(summary)`` is a readable report, :meth:`to_dict` a JSON-ready one."""
+
     branch_names: list[str]
     calls: list[CallRecord]
     macs_per_row: Optional[dict[Hashable, float]]
@@ -47,6 +50,7 @@ class Summary:
     # ---------------------------------------------------------------- numbers
     @staticmethod
     def sparsity_of(call: CallRecord) -> float:
+        """Fraction of one call's (step, sample, branch) decisions that reused."""
         d = call.decisions()
         return float((d != COMPUTE).float().mean()) if d.numel() else 0.0
 
@@ -58,6 +62,7 @@ class Summary:
         return reused / total if total else 0.0
 
     def counts(self, calls: Optional[Sequence[CallRecord]] = None) -> dict[str, int]:
+        """Number of decisions per code name (compute, forward, ...) over ``calls`` (default all)."""
         calls = self.calls if calls is None else calls
         out = {name: 0 for name in CODE_NAMES}
         for c in calls:
@@ -104,6 +109,7 @@ class Summary:
         return {k: float(torch.tensor([t[k] for t in rows if k in t]).median()) for k in keys}
 
     def to_dict(self) -> dict:
+        """Sparsity, decision counts, timing and the last call's MACs, JSON-ready."""
         last = self.calls[-1] if self.calls else None
         sparse_calls = [c for c in self.calls if not c.dense]
         out = {
