@@ -245,7 +245,7 @@ def test_image_pruner_trains_end_to_end_and_static_schedule_search(tmp_path):
 
 
 def test_every_n_prior_grid():
-    from pruner_fit import read_grid
+    from tts.training import read_grid
 
     g = read_grid(Path("every_n:5"), steps=12, branches=4)
     assert g.shape == (12, 4)
@@ -257,7 +257,7 @@ def test_every_n_prior_grid():
 
 def test_prior_reuse_maps_every_reuse_decision_to_one_direction():
     """--prior-reuse rollout: the same compute steps, rollout reuse in between (single-direction variant)."""
-    from pruner_fit import read_grid
+    from tts.training import read_grid
 
     base = read_grid(Path("every_n:4"), steps=8, branches=3)
     g = read_grid(Path("every_n:4"), steps=8, branches=3, reuse="rollout")

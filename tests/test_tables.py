@@ -51,11 +51,10 @@ def test_sign_test_is_exact_two_sided_binomial():
 
 def test_data_efficiency_pipeline_is_told_apart_by_the_priors_calibration_trajectories():
     from figures import _prior_calibration
-    cmd = "python eval/train_pruner.py --prior results/schedules/lift_steps_0.93_n4.json --n-train 4"
-    assert _prior_calibration(cmd) == 4
-    assert _prior_calibration(cmd.replace("_n4", "")) == 32  # the table's schedule: 32 trajectories
-    assert _prior_calibration("python eval/train_pruner.py --n-train 4") is None
-    assert _prior_calibration("python eval/train_pruner.py --prior") is None
+    assert _prior_calibration("results/schedules/lift_steps_0.93_4traj.json") == 4
+    assert _prior_calibration("results/schedules/lift_steps_0.93.json") == 32  # the table's schedule
+    assert _prior_calibration(None) is None
+    assert _prior_calibration("results/schedules/missing.json") is None
 
 
 def test_data_efficiency_keeps_schedules_searched_on_more_calls_apart():
