@@ -241,7 +241,8 @@ def sample_grids(folder: Path) -> list[Path]:
 
 HEADLINE_ROBOT = {"lift": ("dense", "ddim:7", "file:lift_steps_0.93", "pruner:lift_tts_0.93@0.93"),
                   "can": ("dense", "ddim:7", "file:can_steps_0.93_256calls", "pruner:can_tts_0.93_256calls@0.93")}
-HEADLINE_IMAGE = ("dense", "every_n:5:timestep", "toca:6@0.8", "diffusers:fbc@0.8", "pruner:digits_tts_0.8@0.8",
+HEADLINE_IMAGE = ("dense", "every_n:5:timestep", "taylorseer:5:2", "toca:6@0.8", "diffusers:fbc@0.8",
+                  "file:digits_steps_0.8+taylor2", "pruner:digits_tts_0.8@0.8",
                   "pruner:digits_tts_steps_0.8@0.8+taylor2")
 
 
