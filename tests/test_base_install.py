@@ -35,6 +35,7 @@ SCRIPT = textwrap.dedent(
 
     import tts
 
+    torch.set_num_threads(1)
     torch.manual_seed(0)
     layer = nn.TransformerEncoderLayer(16, 2, 32, dropout=0.0, batch_first=True, norm_first=True)
     model = nn.TransformerEncoder(layer, 3, enable_nested_tensor=False).eval()

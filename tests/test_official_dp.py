@@ -18,6 +18,8 @@ import tts
 from conftest import randomize, tiny_dp
 from tts.plans import ROLLOUT, TIMESTEP
 
+pytestmark = pytest.mark.usefixtures("one_thread")  # many tiny ops: threads only add synchronisation
+
 HORIZON, N_OBS, OBS_DIM, ACT_DIM, WIDTH, LAYERS = 6, 2, 7, 5, 32, 3
 NB = 3 * LAYERS
 
@@ -150,7 +152,7 @@ def test_official_layout_is_ours_and_has_none_of_our_helpers():
 @pytest.mark.parametrize("n_cond_layers", [0, 1])
 def test_dense_is_bit_exact_on_the_untouched_module_and_policy(n_cond_layers):
     model = official(n_cond_layers)
-    policy = OfficialStylePolicy(model)
+    policy = OfficialStylePolicy(model, steps=10)
     refs = [policy.predict_action(observations(2, s))["action_pred"] for s in range(2)]
     with tts.accelerate(model) as acc:  # the module itself, calls found from the timesteps
         outs = [policy.predict_action(observations(2, s))["action_pred"] for s in range(2)]

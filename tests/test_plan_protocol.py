@@ -6,6 +6,8 @@ import tts
 from conftest import TorchStack, randomize, tiny_dp, torch_stack_inputs
 from tts.plans import COMPUTE, TIMESTEP, Plan
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 PROTOCOL = ("uses", "codes", "soft", "wants_probe", "timing", "macs_per_sample", "reads_condition", "may_reuse",
             "bind", "observe", "begin_call", "step", "soft_step", "record_probe", "select_tokens", "describe")
 
