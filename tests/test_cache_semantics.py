@@ -17,6 +17,8 @@ import torch.nn as nn
 import tts
 from tts.plans import COMPUTE, FORWARD, ROLLOUT, TIMESTEP
 
+pytestmark = pytest.mark.usefixtures("one_thread")  # small models: threads only add synchronisation
+
 KINDS = ("attn", "mlp")
 
 

@@ -8,6 +8,8 @@ from conftest import randomize, tiny_dp
 from tts.adapters.diffusion_policy import sample_actions
 from tts.adapters.schedulers import FastDDPM
 
+pytestmark = pytest.mark.usefixtures("one_thread")  # small models: threads only add synchronisation
+
 
 def official_keys(n_layer):
     """State-dict keys of diffusion_policy's TransformerForDiffusion (obs cond, MLP cond encoder, causal)."""

@@ -5,6 +5,8 @@ import torch
 import tts
 from helpers import as_tensor
 
+pytestmark = pytest.mark.usefixtures("one_thread")  # small models: threads only add synchronisation
+
 
 def _directions(name):
     return ("forward", "timestep") if "dit" in name else ("forward", "timestep", "rollout")

@@ -7,6 +7,8 @@ from tts.plans import COMPUTE, ROLLOUT, TIMESTEP
 
 from conftest import TorchStack, randomize, tiny_dp, tiny_official_dit, torch_stack_inputs
 
+pytestmark = pytest.mark.usefixtures("one_thread")  # small models: threads only add synchronisation
+
 STEPS = 12
 
 

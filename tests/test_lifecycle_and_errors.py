@@ -7,6 +7,8 @@ import tts
 from conftest import TorchStack, randomize, tiny_dit_diffusers, tiny_dp, tiny_official_dit, torch_stack_inputs
 from helpers import run
 
+pytestmark = pytest.mark.usefixtures("one_thread")  # small models: threads only add synchronisation
+
 
 def _state(model):
     return {k: v.clone() for k, v in model.state_dict().items()}
