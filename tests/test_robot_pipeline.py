@@ -131,7 +131,7 @@ def test_accelerated_policy_uses_predict_action_and_reset_as_boundaries():
     pol = small_policy(num_steps=10)
     ref = pol.predict_action(obs_batch(2), torch.Generator().manual_seed(3))["action_pred"]
     acc = tts.accelerate(pol, plan=tts.plans.every_n(3, "rollout"))
-    assert acc.num_branches == 6 and acc._explicit
+    assert acc.num_branches == 6 and acc.tracker.explicit
     out = pol.predict_action(obs_batch(2), torch.Generator().manual_seed(3))["action_pred"]
     assert torch.equal(out, ref)  # first call of an episode is dense
     pol.predict_action(obs_batch(2, 1))

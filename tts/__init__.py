@@ -85,8 +85,8 @@ def accelerate(
         ``plans.uniform(sparsity, "timestep")`` (FORA-style evenly spread full steps).
     sparsity: target fraction of reused (step, branch) decisions, in [0, 1). With ``pruner``, it
         switches the pruner to exact-budget mode (that many decisions reuse, ranked by the pruner).
-    pruner: a trained :class:`tts.Pruner` or :class:`tts.StaticRouter` (see ``eval/train_pruner.py``): decisions per sample and
-        call, predicted from the model's condition memory (argmax, as in the paper, unless
+    pruner: a trained :class:`tts.Pruner` or :class:`tts.StaticRouter` (:mod:`tts.policy_training`):
+        decisions per sample and call, predicted from the model's condition memory (argmax, as in the paper, unless
         ``sparsity`` is given).
     parallel: run the pruner on a side CUDA stream (GPU) / worker thread (CPU) while step 0 runs;
         ``"auto"``: on CPU only when torch leaves a core idle (see :class:`tts.PrunerPlan`).

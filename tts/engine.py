@@ -278,11 +278,6 @@ class Accelerator:
         """Index of the next denoising step within the current call."""
         return self.tracker.k
 
-    @property
-    def _explicit(self) -> bool:
-        """Whether sampling calls are marked explicitly (boundary methods or :meth:`new_call`)."""
-        return self.tracker.explicit
-
     def summary(self) -> Summary:
         """Decisions, realised sparsity and MACs of the recorded calls."""
         return Summary(
