@@ -273,6 +273,7 @@ def test_reference_stats_cache(inception, tmp_path):
     np.testing.assert_allclose(st.sigma_s, direct.sigma_s, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_cli_end_to_end(inception, tmp_path):
     from PIL import Image
 

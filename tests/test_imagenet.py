@@ -183,6 +183,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_imagenet_script_two_processes_equal_one_process(tmp_path):
     pytest.importorskip("accelerate")
     cfg = DiTConfig(input_size=8, patch_size=2, in_channels=3, hidden_size=32, depth=2, num_heads=2, num_classes=5)
