@@ -13,6 +13,7 @@ from common.methods import IMAGE_KINDS, ROBOT_KINDS, install, parse_method
     ("ddim:7", "ddim:7", "ddim-7"),
     ("uniform:0.93:timestep", "uniform:0.93:timestep", "uniform-0.93-timestep"),
     ("every_n:5:rollout", "every_n:5:rollout", "every_n-5-rollout"),
+    ("rotating:0.93:rollout", "rotating:0.93:rollout", "rotating-0.93-rollout"),
     ("file:results/schedules/lift_steps_0.93.json", "file:lift_steps_0.93", "file-lift_steps_0.93"),
     ("file:results/schedules/lift_steps_0.93.json+taylor1", "file:lift_steps_0.93+taylor1",
      "file-lift_steps_0.93+taylor1"),
@@ -42,6 +43,7 @@ def test_parsed_fields():
     ("uniform:1.0:timestep", IMAGE_KINDS, r"sparsity must be in \[0, 1\)"),
     ("uniform:0.9:sideways", IMAGE_KINDS, "unknown direction 'sideways'"),
     ("every_n:0:timestep", IMAGE_KINDS, "interval must be >= 1"),
+    ("rotating:0.9:forward", ROBOT_KINDS, "moves whole steps"),
     ("ddim:x", IMAGE_KINDS, "number of steps must be an integer"),
     ("ddim:0", IMAGE_KINDS, "at least 1 step"),
     ("pruner:p@1.2", IMAGE_KINDS, r"after '@' must be in \[0, 1\)"),
@@ -83,6 +85,8 @@ def test_install_builds_the_plan_the_spec_names(tmp_path):
     (tmp_path / "s.json").write_text(json.dumps({"directions": ["timestep"], "grid": [[0] * 6, [2] * 6]}))
     with install(model, parse_method(f"file:{tmp_path / 's.json'}")) as acc:
         assert acc.plan.decisions.shape == (1, 2, 6) and acc.directions == ("timestep",)
+    with install(model, parse_method("rotating:0.5:timestep")) as acc:
+        assert isinstance(acc.plan, tts.plans.RotatingPlan) and acc.plan.sparsity == 0.5
     with pytest.raises(FileNotFoundError, match="no schedule at"):
         install(model, parse_method(f"file:{tmp_path / 'missing.json'}"))
     with pytest.raises(ValueError, match="does not run in the tts engine"):

@@ -113,6 +113,7 @@ class Accelerator:
         self.executor = BranchExecutor(layout, self.cache, plan, use_rollout=self.use_rollout,
                                        fast_dense=fast_dense, fuse_steps=self.fuse_steps)
         self.calls: list[CallRecord] = []
+        self.calls_started = 0  # every sampling call so far (self.calls keeps the last max_records)
         self.max_records = 1000
         self.macs_per_row: Optional[dict[Hashable, float]] = None
         self.removed = False
@@ -327,7 +328,8 @@ class Accelerator:
             self._timing = {"encoder": time.perf_counter() - t0}
             self.plan.observe(memory, dense=dense)
         self._observed = False
-        self.plan.begin_call(len(self.calls), batch)
+        self.plan.begin_call(self.calls_started, batch)
+        self.calls_started += 1
         if len(self.calls) >= self.max_records:
             self.calls.pop(0)
         record = CallRecord(batch=batch, dense=dense, timing=self._timing)

@@ -38,10 +38,12 @@ __all__ = [
     "DensePlan",
     "IntervalPlan",
     "UniformPlan",
+    "RotatingPlan",
     "TensorPlan",
     "dense",
     "every_n",
     "uniform",
+    "rotating",
     "from_tensor",
     "check_directions",
     "check_sparsity",
@@ -123,7 +125,8 @@ class Plan:
         the engine computes this call fully anyway (first call of an episode)."""
 
     def begin_call(self, call_index: int, batch: int) -> None:
-        """Called at the start of every sampling call (before step 0)."""
+        """Called at the start of every sampling call (before step 0); ``call_index`` counts every
+        call since the accelerator was installed."""
 
     def step(self, k: int, batch: int) -> torch.Tensor:  # pragma: no cover - abstract
         """Decisions for step ``k``: int8 [1 or batch, num_branches]."""
@@ -230,6 +233,44 @@ class UniformPlan(_PerStepPlan):
         return f"uniform(sparsity={self.sparsity}, {self.direction})"
 
 
+class RotatingPlan(Plan):
+    """Whole-step schedule whose compute steps move by one step per sampling call.
+
+    At call ``c``, step ``k`` computes where :class:`UniformPlan` would compute step ``k + c``, and
+    every other step reuses ``direction``. With the rollout direction, each (step, branch) slot of
+    the rollout cache is then refreshed about every ``1 / (1 - sparsity)`` calls; a static schedule
+    refreshes the reused slots never (the cache writes a slot only when it computes), so they keep
+    the episode's first-call features. Sparsity per call equals the static schedule's up to one step
+    (step 0 always computes).
+    """
+
+    def __init__(self, sparsity: float, direction: str = "rollout"):
+        self.sparsity = check_sparsity(sparsity)
+        (self.direction,) = check_directions((direction,))
+        if self.direction == "forward":
+            raise ValueError("a rotating schedule moves whole compute steps: use the timestep or rollout direction")
+        self.uses = frozenset({COMPUTE, DIRECTIONS[self.direction]})
+        self._offset = 0
+        self._rows: dict[tuple[int, int], torch.Tensor] = {}
+
+    def begin_call(self, call_index: int, batch: int) -> None:
+        self._offset = call_index
+
+    def step(self, k: int, batch: int) -> torch.Tensor:
+        key = (k, self._offset)
+        row = self._rows.get(key)
+        if row is None:
+            if len(self._rows) > 4096:
+                self._rows.clear()
+            hit = _accumulator_hits(k + self._offset, 1.0 - self.sparsity)
+            row = self._rows[key] = torch.full((1, self.num_branches), COMPUTE if hit else DIRECTIONS[self.direction],
+                                               dtype=torch.int8)
+        return row
+
+    def describe(self) -> str:
+        return f"rotating(sparsity={self.sparsity}, {self.direction})"
+
+
 class TensorPlan(Plan):
     """An explicit decision tensor: [K, nb] (all samples) or [B, K, nb], ints or 'CFTR' letters."""
 
@@ -307,6 +348,11 @@ def every_n(n: int, direction: str = "timestep") -> IntervalPlan:
 def uniform(sparsity: float, direction: str = "timestep") -> UniformPlan:
     """Single-direction schedule reusing a fraction ``sparsity`` of branches along ``direction``."""
     return UniformPlan(sparsity, direction)
+
+
+def rotating(sparsity: float, direction: str = "rollout") -> RotatingPlan:
+    """Whole compute steps spread evenly, moved by one step per call (refreshes rollout slots)."""
+    return RotatingPlan(sparsity, direction)
 
 
 def from_tensor(decisions: Union[torch.Tensor, Sequence]) -> TensorPlan:

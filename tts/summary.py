@@ -7,7 +7,7 @@ from typing import Hashable, Optional, Sequence
 import torch
 
 from .flops import OTHER
-from .plans import CODE_NAMES, COMPUTE, TOKENS
+from .plans import CODE_NAMES, COMPUTE, ROLLOUT, TOKENS
 
 __all__ = ["CallRecord", "Summary"]
 
@@ -71,6 +71,35 @@ class Summary:
                 out[name] += int((d == code).sum())
         return out
 
+    def rollout_ages(self, calls: Optional[Sequence[CallRecord]] = None) -> torch.Tensor:
+        """Age in calls of every reused rollout slot: for each rollout decision at (call, sample, step,
+        branch), how many calls ago that (step, branch) was last computed for that sample (1: the
+        previous call's output). The rollout cache writes a slot only when it computes, so a static
+        rollout schedule reuses the episode's first call ever older features. ``calls`` must be
+        consecutive calls (default: all recorded); slots whose last compute precedes the first of
+        them are left out. Returns a 1-D long tensor (empty without rollout reuse)."""
+        calls = self.calls if calls is None else list(calls)
+        ages: list[torch.Tensor] = []
+        last: Optional[torch.Tensor] = None  # [K, B, nb] index of the call that last computed the slot, -1 unknown
+        for i, call in enumerate(calls):
+            d = call.decisions()
+            if call.dense or last is None or last.shape != d.shape:
+                last = torch.full(d.shape, -1, dtype=torch.long)
+            reused = (d == ROLLOUT) & (last >= 0)
+            if bool(reused.any()):
+                ages.append(i - last[reused])
+            last = torch.where(d == COMPUTE, torch.full_like(last, i), last)
+        return torch.cat(ages) if ages else torch.zeros(0, dtype=torch.long)
+
+    def rollout_age_stats(self, calls: Optional[Sequence[CallRecord]] = None) -> dict:
+        """Mean, median, max and the fraction of age 1 (previous-call features) of :meth:`rollout_ages`."""
+        a = self.rollout_ages(calls)
+        if not a.numel():
+            return {"reused_slots": 0}
+        return {"reused_slots": int(a.numel()), "mean_calls": float(a.float().mean()),
+                "median_calls": float(a.float().median()), "max_calls": int(a.max()),
+                "fraction_previous_call": float((a == 1).float().mean())}
+
     def macs(self, call: CallRecord) -> tuple[float, float]:
         """(dense, realised) MACs of one call, from the profiled per-row MACs."""
         if self.macs_per_row is None:
@@ -122,6 +151,8 @@ class Summary:
             "decision_counts": self.counts(),
             "timing_median_s": self.timing(),
         }
+        if "rollout" in self.directions:
+            out["rollout_age"] = self.rollout_age_stats()
         if last is not None:
             dense, realised = self.macs(last)
             out.update(
@@ -167,6 +198,10 @@ class Summary:
         ]
         if last.fallbacks:
             lines.append(f"  rollout cache missing at {last.fallbacks} decisions: computed instead")
+        age = self.rollout_age_stats() if "rollout" in self.directions else {"reused_slots": 0}
+        if age["reused_slots"]:
+            lines.append(f"  rollout reuse: features {age['mean_calls']:.1f} calls old on average (max "
+                         f"{age['max_calls']}); {age['fraction_previous_call']:.0%} from the previous call")
         if dense == dense:  # not NaN
             lines.append(
                 f"  MACs last call: dense {dense / 1e9:.3f} G, realised {realised / 1e9:.3f} G "

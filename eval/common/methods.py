@@ -8,6 +8,8 @@ spec                            method
 ``ddim:K``                      fewer sampling steps: DDIM with K steps, dense
 ``uniform:RHO:DIRECTION``       ``tts.plans.uniform``: RHO of the (step, branch) decisions reuse
 ``every_n:N:DIRECTION``         ``tts.plans.every_n``: full compute every N steps (FORA: timestep)
+``rotating:RHO:DIRECTION``      ``tts.plans.rotating``: as uniform, the compute steps moved by one
+                                step per call (refreshes the rollout cache)
 ``file:SCHEDULE.json``          a searched static schedule (``eval/search_static.py``)
 ``pruner:PATH``                 a trained pruner, argmax decisions (the paper)
 ``pruner:PATH@RHO``             a trained pruner, exactly RHO of the decisions reused per sample
@@ -33,12 +35,13 @@ from typing import Any, Optional
 
 __all__ = ["Method", "parse_method", "install", "ROBOT_KINDS", "IMAGE_KINDS", "VOCABULARY"]
 
-VOCABULARY = ("dense | ddim:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | file:SCHEDULE.json | "
+VOCABULARY = ("dense | ddim:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | rotating:RHO:DIRECTION | "
+              "file:SCHEDULE.json | "
               "pruner:PATH[@RHO] (+taylorO after any of the four) | taylorseer:N:O | toca:N[:RATIO][@RHO] | duca:N[:RATIO][@RHO] | "
               "diffusers:fbc[:THRESHOLD][@RHO] | diffusers:taylorseer:N:O")
-ROBOT_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "file", "pruner", "taylorseer"})
-IMAGE_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "file", "pruner", "taylorseer", "toca", "duca",
-                         "diffusers"})
+ROBOT_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer"})
+IMAGE_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer", "toca",
+                         "duca", "diffusers"})
 _DIRS = ("forward", "timestep", "rollout")
 
 
@@ -121,7 +124,7 @@ def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0
         raise ValueError(f"unknown method {spec!r}; the vocabulary is {VOCABULARY}")
     if kind not in kinds:
         raise ValueError(f"method {kind!r} is not available in this suite (available: {', '.join(sorted(kinds))})")
-    if forecast and kind not in ("file", "pruner", "uniform", "every_n"):
+    if forecast and kind not in ("file", "pruner", "uniform", "every_n", "rotating"):
         raise ValueError(f"a Taylor forecast (+taylorO, --forecast) applies to timestep reuse of file:, pruner:, "
                          f"uniform: and every_n: methods (taylorseer:N:O has its own order), not to {spec!r}")
     body, rho = _budget(spec)
@@ -140,13 +143,15 @@ def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0
         if k < 1:
             raise ValueError(f"method {spec!r}: DDIM needs at least 1 step")
         return Method(spec, kind, n=k)
-    if kind in ("uniform", "every_n"):
+    if kind in ("uniform", "every_n", "rotating"):
         if len(parts) != 3:
             raise bad
         direction = _direction(parts[2], spec)
         if forecast and direction != "timestep":
             raise ValueError(f"method {spec!r}: a Taylor forecast applies to timestep reuse only")
-        if kind == "uniform":
+        if kind == "rotating" and direction == "forward":
+            raise ValueError(f"method {spec!r}: a rotating schedule moves whole steps (timestep or rollout)")
+        if kind in ("uniform", "rotating"):
             s = _number(parts[1], float, "the sparsity", spec)
             if not 0.0 <= s < 1.0:
                 raise ValueError(f"method {spec!r}: sparsity must be in [0, 1), got {s}")
@@ -215,6 +220,9 @@ def install(model: Any, method: Method, *, parallel: Any = "auto", memory_width:
                               forecast=method.forecast)
     if method.kind == "every_n":
         return tts.accelerate(model, (method.direction,), plan=tts.plans.every_n(method.n, method.direction),
+                              forecast=method.forecast)
+    if method.kind == "rotating":
+        return tts.accelerate(model, (method.direction,), plan=tts.plans.rotating(method.sparsity, method.direction),
                               forecast=method.forecast)
     if method.kind == "taylorseer":
         return tts.accelerate(model, ("timestep",), plan=tts.plans.every_n(method.n, "timestep"),
