@@ -168,6 +168,23 @@ def headroom_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+def rollout_age_table(folder: Path) -> str:
+    """Age in calls of the reused rollout slots (eval/rollout_age.py: rollout_age_<task>.json)."""
+    rows = ["| task | method | sparsity | reused rollout slots | mean age (calls) | median | max "
+            "| from the previous call | git SHA |", "|---|---|---|---|---|---|---|---|---|"]
+    for path in sorted(folder.glob("rollout_age_*.json")):
+        r = json.loads(path.read_text())
+        for method, m in r["methods"].items():
+            if not m["reused_slots"]:
+                rows.append(f"| {r['task']} | `{method}` | {m['sparsity']:.3f} | 0 | - | - | - | - | "
+                            f"`{m['provenance']['git_sha'][:10]}` |")
+                continue
+            rows.append(f"| {r['task']} | `{method}` | {m['sparsity']:.3f} | {m['reused_slots']} | "
+                        f"{m['mean_calls']:.2f} | {m['median_calls']:.0f} | {m['max_calls']} | "
+                        f"{100 * m['fraction_previous_call']:.1f}% | `{m['provenance']['git_sha'][:10]}` |")
+    return "\n".join(rows) + "\n"
+
+
 IMAGE_ORDER = ("dense", "every_n:5:timestep", "taylorseer:5:2", "toca:6@0.8", "duca:6@0.8", "diffusers:fbc@0.8",
                "diffusers:taylorseer:5:2", "file:digits_bac_0.8", "pruner:digits_tts_0.8@0.8",
                "file:digits_bac_0.8+taylor2", "pruner:digits_tts_taylor2_0.8@0.8+taylor2",
@@ -316,6 +333,7 @@ def main() -> None:
     docs = REPO / "docs" / "results"
     fill(docs / "robot.md", {"robot": summary_table(robot), "latency": latency_table(robot),
                              "agreement": agreement_table(robot), "headroom": headroom_table(robot),
+                             "rollout-age": rollout_age_table(robot),
                              "runs": robot_table(robot)})
     readme = {"headline-robot": headline_robot(robot)}
     if any(image.glob("digits_*.json")):

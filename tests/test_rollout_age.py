@@ -99,3 +99,15 @@ def test_no_rollout_direction_no_ages():
             model(torch.zeros(1, 3), torch.tensor(STEPS - k))
         assert acc.summary().rollout_ages().numel() == 0
         assert "rollout_age" not in acc.summary().to_dict()
+
+
+def test_derived_schedule_reuses_rollout_early_and_keeps_its_compute_steps():
+    from derive_schedule import derive
+
+    doc = {"grid": ["CC", "TT", "TT", "CC", "TT", "TT"], "directions": ["timestep"], "sparsity": 0.5}
+    out = derive(doc, "rollout", 3)
+    assert out["grid"] == ["CC", "RR", "RR", "CC", "TT", "TT"]
+    assert out["directions"] == ["timestep", "rollout"]
+    assert derive(doc, "rollout", 1)["grid"] == doc["grid"]  # nothing reused before step 1
+    with pytest.raises(ValueError, match="--until must be in 1..6"):
+        derive(doc, "rollout", 7)
