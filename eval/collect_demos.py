@@ -2,6 +2,7 @@
 
     python eval/collect_demos.py --task lift --episodes 100 --seed 0 --out data/lift_expert.hdf5
     python eval/collect_demos.py --task can --episodes 200 --seed 0 --noise 0.3 --out data/can_expert_noisy.hdf5
+    python eval/collect_demos.py --task square --episodes 100 --seed 0 --out data/square_expert.hdf5
 
 Runs the waypoint expert on env seeds seed, seed+1, ...; keeps successful episodes (each stops a
 few steps after the task succeeds, like robomimic's PH data) and writes them atomically, with the
@@ -66,10 +67,14 @@ def main(argv=None) -> None:
     ap.add_argument("--seed", type=int, default=0, help="first env seed")
     ap.add_argument("--noise", type=float, default=0.0,
                     help="DART-style noise std on executed position commands (clean actions are recorded)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (the simulation itself uses one core)")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--report", type=Path, default=None,
                     help="expert success report (default: results/experts/<task>_expert.json)")
     args = ap.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(args.threads)
     demos, outcomes = [], []
     env = make_env(args.task)
     for i in tqdm(range(args.episodes), desc=f"expert {args.task}"):
