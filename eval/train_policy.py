@@ -74,6 +74,9 @@ def main(argv=None) -> None:
     ap.add_argument("--width", type=int, default=128)
     ap.add_argument("--layers", type=int, default=8)
     ap.add_argument("--heads", type=int, default=4)
+    ap.add_argument("--dropout", type=float, default=0.1,
+                    help="dropout on attention weights and every residual branch (Diffusion Policy's p_drop_attn; "
+                         "the reference trains its policies with 0.3)")
     ap.add_argument("--max-demos", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--run-dir", type=Path, default=None, help="resumable state (default: runs/<out name>)")
@@ -93,7 +96,7 @@ def main(argv=None) -> None:
     obs_w, act_w = windows(demos, H, To, Ta)
     cfg = PolicyConfig(
         model=dict(input_dim=action_dim, output_dim=action_dim, horizon=H, n_obs_steps=To, cond_dim=sum(obs_dims),
-                   n_layer=args.layers, n_head=args.heads, n_emb=args.width, p_drop_emb=0.0, p_drop_attn=0.1,
+                   n_layer=args.layers, n_head=args.heads, n_emb=args.width, p_drop_emb=0.0, p_drop_attn=args.dropout,
                    causal_attn=True, time_as_cond=True, obs_as_cond=True, n_cond_layers=0),
         obs_keys=list(OBS_KEYS), obs_dims=obs_dims, action_dim=action_dim, horizon=H, n_obs_steps=To,
         n_action_steps=Ta, num_train_timesteps=100, num_inference_steps=100, scheduler="ddpm")
@@ -102,7 +105,7 @@ def main(argv=None) -> None:
     policy.action_normalizer.fit(act_w)
     ema = EMA(policy)
     opt = torch.optim.AdamW(policy.model.parameters(), lr=args.lr, betas=(0.9, 0.95), weight_decay=1e-3)
-    warmup = min(500, args.steps // 10)
+    warmup = max(1, min(500, args.steps // 10))
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: min(1.0, (s + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * min(s, args.steps) / args.steps)))
     run_dir = args.run_dir or Path("runs") / args.out.name
@@ -134,7 +137,7 @@ def main(argv=None) -> None:
             sched.step()
             ema.update(policy)
             step += 1
-            losses.append(float(loss))
+            losses.append(float(loss.detach()))
             bar.update(1)
             if step % 50 == 0:
                 bar.set_postfix(loss=f"{np.mean(losses[-50:]):.4f}")

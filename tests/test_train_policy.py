@@ -1,0 +1,49 @@
+"""eval/train_policy.py: a tiny run on a hand-made robomimic file, checked through load_policy."""
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("h5py")
+
+from robot_suite.robomimic import Demo, write_demos  # noqa: E402
+from robot_suite.tasks import OBS_KEYS  # noqa: E402
+
+DIMS = {"object": 10, "robot0_eef_pos": 3, "robot0_eef_quat": 4, "robot0_gripper_qpos": 2}
+
+
+def test_dropout_reaches_every_residual_branch_of_the_trained_policy(tmp_path, one_thread):
+    import train_policy
+    from tts.adapters.dp_policy import load_policy
+
+    rng = np.random.default_rng(0)
+    demos = [Demo(obs={k: rng.normal(size=(n, DIMS[k])) for k in OBS_KEYS}, actions=rng.uniform(-1, 1, (n, 7)),
+                  rewards=np.arange(n) == n - 1, dones=np.arange(n) == n - 1) for n in (24, 30)]
+    write_demos(tmp_path / "d.hdf5", demos, {"env_name": "Lift"})
+    out = tmp_path / "policy"
+    train_policy.main(["--data", str(tmp_path / "d.hdf5"), "--out", str(out), "--steps", "3", "--batch", "4",
+                       "--width", "16", "--layers", "2", "--heads", "2", "--dropout", "0.3",
+                       "--run-dir", str(tmp_path / "run")])
+    policy = load_policy(out)
+    assert policy.model.config.p_drop_attn == 0.3
+    layers = policy.model.decoder.layers
+    # self-attention, cross-attention and MLP outputs each pass a dropout of p = 0.3 before the residual add
+    assert all(getattr(layer, f"dropout{i}").p == 0.3 for layer in layers for i in (1, 2, 3))
+    assert all(layer.self_attn.dropout == 0.3 for layer in layers)
+    policy.model.eval()
+    assert not any(m.training for m in policy.model.modules())  # loaded for inference: dropout off
+
+
+def test_a_run_shorter_than_its_warm_up_trains(tmp_path, one_thread):
+    """--steps below 10 used to divide by a zero-step warm-up."""
+    import train_policy
+    from tts.adapters.dp_policy import load_policy
+
+    rng = np.random.default_rng(1)
+    demos = [Demo(obs={k: rng.normal(size=(20, DIMS[k])) for k in OBS_KEYS}, actions=rng.uniform(-1, 1, (20, 7)),
+                  rewards=np.arange(20) == 19, dones=np.arange(20) == 19)]
+    write_demos(tmp_path / "d.hdf5", demos, {"env_name": "Lift"})
+    args = ["--data", str(tmp_path / "d.hdf5"), "--width", "16", "--layers", "1", "--heads", "2", "--batch", "4"]
+    train_policy.main(args + ["--out", str(tmp_path / "a"), "--steps", "2", "--run-dir", str(tmp_path / "ra")])
+    train_policy.main(args + ["--out", str(tmp_path / "b"), "--steps", "4", "--run-dir", str(tmp_path / "rb")])
+    a, b = load_policy(tmp_path / "a").model.state_dict(), load_policy(tmp_path / "b").model.state_dict()
+    assert any(not torch.equal(a[k], b[k]) for k in a)  # the two extra steps changed the weights
