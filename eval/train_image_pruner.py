@@ -76,7 +76,8 @@ def main(argv=None) -> dict:
     targets = dense(np.concatenate([train_idx, val_idx]))
     cfg = model.config
     pruner = build_pruner(PrunerConfig(memory_dim=cfg.hidden_size, num_branches=2 * cfg.depth, directions=directions,
-                                       hidden=config.hidden, steps=args.steps, prior=config.prior is not None,
+                                       hidden=config.hidden, heads=config.heads, ffn=config.ffn, steps=args.steps,
+                                       prior=config.prior is not None,
                                        tie_branches=config.tie_branches, step_query=config.step_query))
     if config.prior is not None:
         grid = read_grid(config.prior, steps=args.steps, branches=2 * cfg.depth, reuse=config.prior_reuse)
@@ -93,7 +94,8 @@ def main(argv=None) -> dict:
             loss = l1 + config.lam * (reuse - config.sparsity).abs().mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(pruner.parameters(), 1.0)
+            if config.clip_grad is not None:
+                torch.nn.utils.clip_grad_norm_(pruner.parameters(), config.clip_grad)
             opt.step()
             reuse = reuse.detach()
         else:

@@ -49,6 +49,16 @@ def main(argv=None) -> None:
     ap.add_argument("--init-schedule", type=Path, default=None,
                     help="warm start: fit the pruner to a searched static schedule (eval/search_static.py JSON) "
                          "by cross-entropy before the straight-through training")
+    ap.add_argument("--recipe", choices=["ours", "reference"], default="ours",
+                    help="reference: the reference implementation's recipe as defaults (pruner hidden 512, 8 heads, "
+                         "FF 1024, head bias zero, AdamW lr 1e-4, weight decay 1e-4, warm-up then linear decay, no "
+                         "clipping, batches of 16 episodes, 20 epochs, unpaired noise); options given explicitly win")
+    first, _ = ap.parse_known_args(argv)
+    if first.recipe == "reference":
+        recipe = PolicyPrunerTrainingConfig.reference(out=first.out, directions=first.directions)
+        ap.set_defaults(**{k: getattr(recipe, k) for k in ("hidden", "heads", "ffn", "lr", "weight_decay",
+                                                           "lr_schedule", "clip_grad", "batch", "epochs")},
+                        head_bias=",".join(str(b) for b in recipe.head_bias))
     args = parse_args(ap, argv)
     try:
         config = PolicyPrunerTrainingConfig.from_dict(vars(args))

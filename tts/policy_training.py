@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from .plans import check_directions
 from .pruner import PrunerConfig, PrunerModule, PrunerPlan, build_pruner, distill_schedule, pruner_loss
 from .trajectories import REPLAY_KEYS, episode_groups, lockstep_frames, obs_dict, split_episodes
 from .training import GridSource, PrunerTrainingConfig, RecordingPlan, fit, read_grid
@@ -53,6 +54,21 @@ class PolicyPrunerTrainingConfig(PrunerTrainingConfig):
     # straight-through training
     init_schedule: Optional[GridSource] = None
 
+    @classmethod
+    def reference(cls, out, **overrides) -> "PolicyPrunerTrainingConfig":
+        """The reference implementation's recipe: pruner hidden 512, 8 heads, FF 1024, head bias
+        zero (argmax starts near uniform over the options, not from a prior), AdamW lr 1e-4 and weight
+        decay 1e-4, warm-up then linear decay, no gradient clipping, batches of 16 episodes, 20 epochs,
+        unpaired noise. ``overrides`` replace any of these."""
+        recipe = dict(hidden=512, heads=8, ffn=1024, lr=1e-4, weight_decay=1e-4, lr_schedule="linear",
+                      clip_grad=None, batch=16, epochs=20, paired=False)
+        recipe.update(overrides)
+        if "head_bias" not in recipe:
+            directions = recipe.get("directions", cls.directions)
+            n = len(check_directions(directions.split(",") if isinstance(directions, str) else directions))
+            recipe["head_bias"] = [0.0] * (1 + n)
+        return cls(out=out, **recipe)
+
     def __post_init__(self) -> None:
         super().__post_init__()
         if isinstance(self.head_bias, str):
@@ -72,6 +88,7 @@ def build_policy_pruner(policy, config: PolicyPrunerTrainingConfig) -> PrunerMod
     steps = policy.cfg.num_inference_steps
     pruner = build_pruner(PrunerConfig(
         memory_dim=cfg.n_emb, num_branches=3 * cfg.n_layer, directions=config.directions, hidden=config.hidden,
+        heads=config.heads, ffn=config.ffn,
         kind="static" if config.static else "transformer", steps=steps, prior=config.prior is not None,
         tie_branches=config.tie_branches, step_query=config.step_query, head_bias=config.head_bias))
     if config.prior is not None:
@@ -109,7 +126,8 @@ def _run_group(policy, plan: PrunerPlan, group, config: PolicyPrunerTrainingConf
             out = pruner_loss(pred, target, plan.gates, config.sparsity, config.lam, w)
             opt.zero_grad(set_to_none=True)
             out["loss"].backward()
-            torch.nn.utils.clip_grad_norm_(plan.pruner.parameters(), 1.0)
+            if config.clip_grad is not None:
+                torch.nn.utils.clip_grad_norm_(plan.pruner.parameters(), config.clip_grad)
             opt.step()
             l1 = float(out["l1"].detach())
             reuse = out["reuse"].detach()

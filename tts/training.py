@@ -39,7 +39,16 @@ GridSource = Union[str, Path, torch.Tensor, Sequence[str]]
 
 # options a resumed run must share with the run it continues (the rest may change, e.g. more epochs)
 _RESUME_MUST_MATCH = ("directions", "sparsity", "lam", "lr", "weight_decay", "batch", "forecast", "train_budget",
-                      "n_train", "seed")
+                      "n_train", "seed", "lr_schedule", "clip_grad")
+
+
+def lr_factor(epoch: int, epochs: int, schedule: str) -> float:
+    """Learning-rate multiplier of ``epoch`` (0-based): linear warm-up over the first fifth of the
+    epochs, then cosine or linear decay."""
+    warm = min(1.0, (epoch + 1) / max(1, epochs // 5))
+    if schedule == "linear":
+        return warm * max(0.0, 1.0 - epoch / epochs)
+    return warm * 0.5 * (1 + math.cos(math.pi * epoch / epochs))
 
 
 @dataclass
@@ -55,6 +64,12 @@ class PrunerTrainingConfig:
     lr: float = 1e-3
     weight_decay: float = 1e-4
     hidden: int = 64  # the pruner's width
+    heads: int = 4  # attention heads of its decoder layer
+    ffn: int = 128  # width of its feed-forward layer
+    # learning rate per epoch: "cosine" (warm-up over the first fifth, then cosine decay) or "linear"
+    # (the same warm-up, then linear decay to zero: the reference's schedule)
+    lr_schedule: str = "cosine"
+    clip_grad: Optional[float] = 1.0  # gradient-norm clip of the pruner's parameters; None: no clipping
     # train (and validate) with TaylorSeer-style forecasting timestep reuse of this order; use the same
     # forecast at test time
     forecast: int = 0
@@ -94,6 +109,10 @@ class PrunerTrainingConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.n_val < 0:
             raise ValueError(f"n_val must be >= 0, got {self.n_val}")
+        if self.lr_schedule not in ("cosine", "linear"):
+            raise ValueError(f"lr_schedule must be 'cosine' or 'linear', got {self.lr_schedule!r}")
+        if self.clip_grad is not None and self.clip_grad <= 0:
+            raise ValueError(f"clip_grad must be positive or None (no clipping), got {self.clip_grad}")
         if self.val_mode not in ("argmax", "budget"):
             raise ValueError(f"val_mode must be 'argmax' or 'budget', got {self.val_mode!r}")
         if self.step_query and not self.tie_branches:
@@ -202,8 +221,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
     """
     say = log or (lambda msg: None)
     opt = torch.optim.AdamW(pruner.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda e: min(1.0, (e + 1) / max(1, config.epochs // 5)) * 0.5 * (1 + math.cos(math.pi * e / config.epochs)))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: lr_factor(e, config.epochs, config.lr_schedule))
     state_path = config.state_path
     epoch, history, best, best_state, st = 0, [], None, None, None
     if config.resume and state_path.exists():

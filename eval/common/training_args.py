@@ -43,9 +43,18 @@ def add_training_args(ap: argparse.ArgumentParser, *, sparsity: float, direction
                          "(the same decisions' shape at ~1/num_branches of the decoder's MACs)")
     ap.add_argument("--val-mode", choices=["argmax", "budget"], default="argmax",
                     help="test-time rule used for validation and checkpoint selection (budget: exactly --sparsity)")
+    ap.add_argument("--heads", type=int, default=4, help="attention heads of the pruner's decoder layer")
+    ap.add_argument("--ffn", type=int, default=128, help="feed-forward width of the pruner's decoder layer")
+    ap.add_argument("--lr-schedule", choices=["cosine", "linear"], default="cosine",
+                    help="per epoch: warm-up over the first fifth, then cosine or linear decay")
+    ap.add_argument("--clip-grad", type=_clip, default=1.0, help="gradient-norm clip, or 'none'")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--run-dir", type=Path, default=None)
     ap.add_argument("--resume", action="store_true")
+
+
+def _clip(text: str):
+    return None if text.lower() == "none" else float(text)
 
 
 def training_metadata(args: argparse.Namespace) -> dict:
