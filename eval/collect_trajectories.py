@@ -37,6 +37,9 @@ def main(argv=None) -> None:
     ap.add_argument("--n-envs", type=int, default=16)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--full-horizon", action="store_true",
+                    help="run every episode to the task's horizon and record the frames after success too "
+                         "(the reference's pruner training data)")
     args = parse_args(ap, argv)
     seeds = list(range(args.seed, args.seed + args.episodes))
     episodes: list[dict] = []
@@ -52,7 +55,7 @@ def main(argv=None) -> None:
     with tqdm(total=len(seeds), initial=len(done), desc=f"trajectories {args.task}") as bar:
         for w in range(0, len(todo), len(envs)):
             wave = todo[w:w + len(envs)]
-            outcomes, _ = run_wave(policy, envs, wave, args.task, None, record=True)
+            outcomes, _ = run_wave(policy, envs, wave, args.task, None, record=True, full_horizon=args.full_horizon)
             for o in outcomes:
                 episodes.append({"seed": o["seed"], "success": o["success"], **o["trajectory"]})
             save_trajectories(args.out, episodes, meta)

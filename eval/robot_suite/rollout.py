@@ -20,13 +20,16 @@ def noise_seed(episode_seed: int, call: int) -> int:
 
 
 def run_wave(policy, envs, seeds, task, generator, record: bool = False,
-             horizon: Optional[int] = None) -> tuple[list[dict], list[float]]:
+             horizon: Optional[int] = None, full_horizon: bool = False) -> tuple[list[dict], list[float]]:
     """Run one episode per env in lockstep; returns per-episode outcomes and per-call latencies.
 
     ``record=True``: every env gets its own noise generator per call (seeded by :func:`noise_seed`,
     so a sample's noise does not depend on the batch) and each outcome carries its trajectory: the
     obs window fed to the policy [R, To, obs_dim], the dense ``action_pred`` [R, H, Da], the
     executed chunk [R, Ta, Da] and the noise seeds [R] (R = calls until success or the horizon).
+    ``full_horizon=True``: every episode runs to the horizon, also after success (the policy keeps
+    acting; ``success`` says whether the task was ever solved), and its frames after success are
+    recorded too, as the reference's pruner training data includes them.
     """
     cfg = policy.cfg
     n = len(seeds)
@@ -40,7 +43,10 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
     horizon = horizon or TASKS[task].horizon
     t = 0
     call = 0
-    while t < horizon and not all(success):
+    def done(e: int) -> bool:  # an env that stops acting: solved, unless the episode runs to the horizon
+        return success[e] and not full_horizon
+
+    while t < horizon and not all(done(e) for e in range(n)):
         obs = {k: np.stack([np.stack([h[j][k] for j in range(cfg.n_obs_steps)]) for h in hist]) for k in OBS_KEYS}
         gen = [torch.Generator().manual_seed(noise_seed(s, call)) for s in seeds] if record else generator
         t0 = time.perf_counter()
@@ -50,13 +56,13 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
         if record:
             window = policy.obs_vector(obs).cpu().numpy()
             for e in range(n):
-                if not success[e]:
+                if not done(e):
                     for key, val in (("obs", window[e]), ("action_pred", out["action_pred"][e].cpu().numpy()),
                                      ("action", actions[e]), ("noise_seed", noise_seed(seeds[e], call))):
                         traj[e][key].append(val)
         for a_i in range(actions.shape[1]):
             for e in range(n):
-                if success[e]:
+                if done(e):
                     continue  # finished envs keep their last observation (batch size stays constant)
                 raw, _, _, _ = envs[e].step(actions[e, a_i])
                 hist[e].append(low_dim_obs(raw))
@@ -64,7 +70,7 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
                 if envs[e]._check_success():
                     success[e] = True
             t += 1
-            if t >= horizon or all(success):
+            if t >= horizon or all(done(e) for e in range(n)):
                 break
         call += 1
     outcomes = [{"seed": s, "success": bool(ok), "env_steps": st} for s, ok, st in zip(seeds, success, steps)]
