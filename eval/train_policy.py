@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import provenance  # noqa: E402
+from common import parse_args, provenance  # noqa: E402
 
 from tts.adapters.dp_policy import DiffusionTransformerLowdimPolicy, PolicyConfig, save_policy  # noqa: E402
 from robot_suite.robomimic import read_demos  # noqa: E402
@@ -84,7 +84,7 @@ def main(argv=None) -> None:
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--export-only", action="store_true",
                     help="write the checkpoint from the latest saved state (EMA) without training further")
-    args = ap.parse_args(argv)
+    args = parse_args(ap, argv)
     if args.export_only:
         args.resume = True
 
