@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# Does the number of denoising steps matter for a policy? Dense DDPM-100 and DDIM-k for k in KS
+# (default 1 2 3 5 7 10), first on validation seeds (400000.., never a test seed), then, with
+# STAGE=test, on the 3 test seeds x 50 episodes. The testbed counts as discriminative for a task
+# when dense success is high and DDIM-3 falls more than 10 points below it.
+#   TASK=lift CKPT=checkpoints/lift_mh_dpt bash recipes/steps_matter.sh
+# Resumable (robot.py --resume). About 5-15 min per method and seed on 2 CPU cores. Then:
+# python eval/tables.py
+set -euo pipefail
+source "$(dirname "$0")/lib.sh"
+robot_task "${TASK:-lift}"
+CKPT=${CKPT:-checkpoints/${TASK}_dpt}
+if [ "${STAGE:-val}" = val ]; then
+  export SEEDS=${SEEDS:-400000}
+fi
+evaluate --method dense
+for k in ${KS:-1 2 3 5 7 10}; do
+  evaluate --method "ddim:$k"
+done
