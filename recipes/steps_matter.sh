@@ -8,8 +8,9 @@
 # python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
+ckpt=${CKPT:-}
 robot_task "${TASK:-lift}"
-CKPT=${CKPT:-checkpoints/${TASK}_dpt}
+CKPT=${ckpt:-$CKPT}
 if [ "${STAGE:-val}" = val ]; then
   export SEEDS=${SEEDS:-400000}
 fi
