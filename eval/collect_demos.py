@@ -92,10 +92,10 @@ def _expert_code() -> str:
 
 
 def _run_operator(env, task: str, op: Operator, seeds: list[int], keep: int, noise: float,
-                  parts: Path) -> tuple[list[dict], list[Demo]]:
-    """All of one operator's episodes (or its finished part from an earlier run)."""
+                  parts: Path, code: str) -> tuple[list[dict], list[Demo]]:
+    """All of one operator's episodes (or its finished part from an earlier run of the same code)."""
     key = json.loads(json.dumps({"operator": op.params(), "seeds": seeds, "keep": keep, "noise": noise,
-                                 "expert_code": _expert_code()}))
+                                 "expert_code": code}))
     meta, h5 = parts / f"{op.name}.json", parts / f"{op.name}.hdf5"
     if meta.exists() and h5.exists():
         done = json.loads(meta.read_text())
@@ -118,11 +118,13 @@ def collect_mh(args) -> None:
     ops = OPERATORS[args.task]
     parts = args.out.with_name(args.out.name + ".parts")
     parts.mkdir(parents=True, exist_ok=True)
+    prov = provenance(seeds=[args.seed, args.seed + len(ops) * args.episodes - 1])  # the code that runs
+    code = _expert_code()
     env = make_env(args.task)
     demos, names_by, rows = [], {}, []
     for k, op in enumerate(ops):
         seeds = list(range(args.seed + k * args.episodes, args.seed + (k + 1) * args.episodes))
-        outcomes, kept = _run_operator(env, args.task, op, seeds, args.per_operator, args.noise, parts)
+        outcomes, kept = _run_operator(env, args.task, op, seeds, args.per_operator, args.noise, parts, code)
         names = [f"demo_{len(demos) + i}" for i in range(len(kept))]
         demos.extend(kept)
         names_by.setdefault(op.quality, []).extend(names)
@@ -143,7 +145,7 @@ def collect_mh(args) -> None:
     masks.update({op.name: names_by[op.name] for op in ops})
     write_demos(args.out, demos, env_args(args.task), masks=masks)
     report = {
-        "provenance": provenance(seeds=[args.seed, args.seed + len(ops) * args.episodes - 1]),
+        "provenance": prov,
         "task": args.task,
         "mix": "mh",
         "dart_noise": args.noise,
