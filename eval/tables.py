@@ -17,6 +17,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, write_atomic  # noqa: E402
 
 
+VALIDATION_SEEDS = 400000  # first seeds from here on are validation episodes (recipes/steps_matter.sh)
+
+
+def policy_of(r: dict) -> str:
+    """The task of a run, with its policy when that is not the bundled ``checkpoints/<task>_dpt``, and
+    ``, validation`` for runs on validation seeds: runs of different policies or splits never pool."""
+    label = r["task"]
+    ckpt = Path(r.get("checkpoint", ""))
+    if ckpt.name and ckpt.name != f"{r['task']}_dpt":
+        label += f" ({ckpt.name})"
+    seeds = r.get("provenance", {}).get("seeds") or [0]
+    if isinstance(seeds, list) and seeds and seeds[0] >= VALIDATION_SEEDS:
+        label += ", validation"
+    return label
+
+
 def robot_table(folder: Path) -> str:
     rows = ["| task | method | success | episodes | seeds | batch | call latency median / p90 (ms) | calls/s | actions/s per env | sparsity | MACs ratio dense / (realised + pruner) | git SHA |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -31,7 +47,7 @@ def robot_table(folder: Path) -> str:
         sparsity = info.get("sparsity_non_dense_calls", info.get("sparsity_all_calls", 0))
         seeds = r["provenance"]["seeds"]
         rows.append(
-            f"| {r['task']} | `{r['method']}` | {r['success_rate']:.2f} | {r['episodes_done']}/{r['episodes_requested']} | "
+            f"| {policy_of(r)} | `{r['method']}` | {r['success_rate']:.2f} | {r['episodes_done']}/{r['episodes_requested']} | "
             f"{seeds[0]}..{seeds[-1]} | {r['batch']} | {r['latency_ms']['median']:.1f} / {r['latency_ms']['p90']:.1f} | "
             f"{r['calls_per_s']:.2f} | {r['actions_per_s_per_env']:.1f} | {sparsity:.3f} | "
             f"{ratio:.2f} | `{r['provenance']['git_sha'][:10]}` |")
@@ -44,7 +60,7 @@ def summary_table(folder: Path) -> str:
     for path in sorted(folder.glob("*.json")):
         r = json.loads(path.read_text())
         if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
-            runs.setdefault((r["task"], r["method"]), []).append(r)
+            runs.setdefault((policy_of(r), r["method"]), []).append(r)
     rows = ["| task | method | success mean | std | evaluation seeds (first test seed of each run) | sparsity "
             "| vs dense on the same episodes: difference (95% CI), episodes only dense / only this method solved, "
             "sign test |",
@@ -270,7 +286,7 @@ def headline_robot(folder: Path) -> str:
     for path in sorted(folder.glob("*.json")):
         r = json.loads(path.read_text())
         if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
-            runs.setdefault((r["task"], r["method"]), []).append(r)
+            runs.setdefault((policy_of(r), r["method"]), []).append(r)
     speed: dict[tuple[str, str], dict[int, float]] = {}
     for path in sorted(folder.glob("latency_*.json")):
         r = json.loads(path.read_text())
