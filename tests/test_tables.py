@@ -62,3 +62,12 @@ def test_data_efficiency_keeps_schedules_searched_on_more_calls_apart():
     a = _schedule_label({"sparsity": 0.93, "calibration_calls": 64})
     b = _schedule_label({"sparsity": 0.93, "calibration_calls": 256})
     assert a != b and "256 calls" in b and "rho=0.93" in a
+
+
+def test_runs_of_other_policies_and_validation_seeds_never_pool_with_the_bundled_test_runs():
+    from tables import policy_of
+
+    run = {"task": "lift", "checkpoint": "checkpoints/lift_dpt", "provenance": {"seeds": [100000, 100001]}}
+    assert policy_of(run) == "lift"
+    assert policy_of({**run, "checkpoint": "checkpoints/lift_mh_dpt"}) == "lift (lift_mh_dpt)"
+    assert policy_of({**run, "provenance": {"seeds": [400000]}}) == "lift, validation"
