@@ -107,11 +107,13 @@ class _Waypoints:
     (DART-style noise injection: the clean expert action is recorded, so the data shows how to
     recover from the perturbed states a learned policy drifts into). ``hesitant_phases``: phases
     in which an operator may pause. ``miss_distance``: how far off a missed grasp is, along the
-    hand's x axis (the fingers come down beside the object)."""
+    hand's x axis (the fingers come down beside the object). ``free_tilt``: operators with a
+    ``yaw`` turn the hand about the vertical only, leaving its tilt as the controller drifts."""
 
     noisy_phases: tuple[int, ...] = ()
     hesitant_phases: tuple[int, ...] = ()
     miss_distance = 0.035
+    free_tilt = False
 
     def __init__(self, env, operator: Operator = EXPERT, rng: Optional[np.random.Generator] = None):
         self.env = env
@@ -186,7 +188,12 @@ class _Waypoints:
             self.phase = _GAVE_UP
 
     def _turn_to(self, quat: np.ndarray, yaw: Optional[float]) -> np.ndarray:
-        return np.zeros(3) if yaw is None else _turn(quat, yaw, self.op.speed)
+        """Rotation command toward ``yaw`` (None: none); ``free_tilt`` turns about the vertical only."""
+        if yaw is None:
+            return np.zeros(3)
+        if self.free_tilt:
+            return np.array([0.0, 0.0, np.clip(self.op.speed * _wrap(yaw - _yaw(quat)) / 0.5, -1.0, 1.0)])
+        return _turn(quat, yaw, self.op.speed)
 
 
 class LiftExpert(_Waypoints):
@@ -250,6 +257,7 @@ class CanExpert(_Waypoints):
     noisy_phases = (0, 1, 4)
     hesitant_phases = (0, 3, 4)
     miss_distance = 0.05
+    free_tilt = True  # with the hand held vertical the far corner of the goal bin is out of reach
 
     def _plan(self, raw: dict) -> np.ndarray:
         a = self._plan_position(raw)
@@ -425,6 +433,19 @@ OPERATORS: dict[str, list[Operator]] = {
                  pause=(10, 25), miss=0.45, max_grasps=2, noise=0.3),
         Operator("worse_operator_2", "worse", speed=0.5, approach=(0.06, -0.08), grasp_shift=0.008,
                  hesitate=0.02, pause=(10, 25), miss=0.5, max_grasps=2, noise=0.3),
+    ],
+    "can": [
+        Operator("better_operator_1", "better", speed=1.0, noise=0.05),
+        Operator("better_operator_2", "better", speed=0.9, yaw=np.pi / 2, approach=(0.0, 0.08), grasp_shift=0.01,
+                 hesitate=0.005, noise=0.08),
+        Operator("okay_operator_1", "okay", speed=0.85, yaw=-_Q, approach=(-0.08, 0.0), hesitate=0.015, miss=0.2,
+                 max_grasps=3, noise=0.15),
+        Operator("okay_operator_2", "okay", speed=0.8, yaw=_Q, approach=(0.08, 0.0), grasp_shift=0.012,
+                 hesitate=0.015, miss=0.2, max_grasps=3, noise=0.15),
+        Operator("worse_operator_1", "worse", speed=0.75, yaw=np.pi / 2, approach=(0.0, -0.1), hesitate=0.015,
+                 pause=(10, 25), miss=0.35, max_grasps=2, noise=0.3),
+        Operator("worse_operator_2", "worse", speed=0.7, approach=(0.06, 0.08), grasp_shift=0.01, hesitate=0.015,
+                 pause=(10, 25), miss=0.4, max_grasps=2, noise=0.3),
     ],
 }
 
