@@ -76,6 +76,58 @@ def summary_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+def steps_table(folder: Path) -> str:
+    """Does the number of denoising steps matter: success of dense DDPM-100 and DDIM-k per policy and
+    split (complete runs; the cell also gives the episodes it pools)."""
+    runs: dict[tuple[str, str], list[dict]] = {}
+    for path in sorted(folder.glob("*.json")):
+        r = json.loads(path.read_text())
+        if "success_rate" in r and r["episodes_done"] == r["episodes_requested"] and \
+                (r["method"] == "dense" or r["method"].startswith("ddim:")):
+            runs.setdefault((policy_of(r), r["method"]), []).append(r)
+    ks = sorted({int(m.split(":")[1]) for _, m in runs if m != "dense"})
+    methods = ["dense"] + [f"ddim:{k}" for k in ks]
+    rows = ["| policy | " + " | ".join(f"`{m}`" for m in methods) + " |", "|---|" + "---|" * len(methods)]
+    for policy in sorted({p for p, _ in runs}):
+        cells = []
+        for m in methods:
+            rs = runs.get((policy, m))
+            if not rs:
+                cells.append("-")
+                continue
+            n = sum(r["episodes_done"] for r in rs)
+            cells.append(f"{sum(r['success_rate'] * r['episodes_done'] for r in rs) / n:.2f} ({n})")
+        rows.append(f"| {policy} | " + " | ".join(cells) + " |")
+    return "\n".join(rows) + "\n"
+
+
+def operators_table(folder: Path) -> str:
+    """The mixed-quality operators of every task with MH-style data (results/experts/<task>_mh.json)
+    and how multimodal the data is (<task>_mh_modes.json, eval/demo_modes.py)."""
+    rows = ["| task | operator | quality | speed | grasp yaw (deg) | approach via (m) | miss rate | noise "
+            "| success (seeds) | mean demo length | hand turn before grasp (deg, mean / std) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for path in sorted(folder.glob("*_mh.json")):
+        r = json.loads(path.read_text())
+        modes_path = folder / f"{r['task']}_mh_modes.json"
+        modes = json.loads(modes_path.read_text())["operators"] if modes_path.exists() else {}
+        for op in r["operators"]:
+            prm = op["params"]
+            yaw = "any" if prm["yaw"] is None else f"{math.degrees(prm['yaw']):.0f}"
+            turn = modes.get(op["operator"], {}).get("hand_turn_before_grasp_deg")
+            turn = f"{turn['mean']:.0f} / {turn['std']:.0f}" if turn else "-"
+            rows.append(f"| {r['task']} | {op['operator']} | {op['quality']} | {prm['speed']:g} | {yaw} | "
+                        f"{tuple(prm['approach'])} | {prm['miss']:g} | {prm['noise']:g} | {op['success_rate']:.2f} "
+                        f"({op['attempts']}) | {op['mean_demo_length']:.0f} | {turn} |")
+    rows += ["", "| task | data | neighbours' action std | pairs of neighbours' commands > 90 deg apart |",
+             "|---|---|---|---|"]
+    for path in sorted(folder.glob("*_mh_modes.json")):
+        r = json.loads(path.read_text())
+        for name, v in r["neighbour_action_spread"].items():
+            rows.append(f"| {r['task']} | {name} | {v['mean_action_std']:.3f} | {100 * v['opposed_pair_fraction']:.1f}% |")
+    return "\n".join(rows) + "\n"
+
+
 def paired_vs_dense(runs: list[dict], dense: list[dict]) -> str:
     """Success difference to dense on the test episodes both were run on (same env seed = same initial
     state): the paired difference with Newcombe's score interval (95%), the discordant counts (only
@@ -351,6 +403,7 @@ def main() -> None:
                              "agreement": agreement_table(robot), "headroom": headroom_table(robot),
                              "rollout-age": rollout_age_table(robot),
                              "runs": robot_table(robot)})
+    fill(docs / "testbed.md", {"steps": steps_table(robot), "operators": operators_table(REPO / "results" / "experts")})
     readme = {"headline-robot": headline_robot(robot)}
     if any(image.glob("digits_*.json")):
         sample_grids(image)
