@@ -4,7 +4,7 @@
 # STAGE=test, on the 3 test seeds x 50 episodes. The testbed counts as discriminative for a task
 # when dense success is high and DDIM-3 falls more than 10 points below it.
 #   TASK=lift CKPT=checkpoints/lift_mh_dpt bash recipes/steps_matter.sh
-# Resumable (robot.py --resume). About 5-15 min per method and seed on 2 CPU cores. Then:
+# THREADS: torch threads (default 1: success runs, not timings). Resumable (robot.py --resume). About 5-15 min per method and seed on 2 CPU cores. Then:
 # python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
@@ -14,7 +14,7 @@ CKPT=${ckpt:-$CKPT}
 if [ "${STAGE:-val}" = val ]; then
   export SEEDS=${SEEDS:-400000}
 fi
-evaluate --method dense
+evaluate --method dense --threads "${THREADS:-1}"
 for k in ${KS:-1 2 3 5 7 10}; do
-  evaluate --method "ddim:$k"
+  evaluate --method "ddim:$k" --threads "${THREADS:-1}"
 done
