@@ -43,6 +43,13 @@ from robot_suite.rollout import run_wave  # noqa: E402
 from robot_suite.tasks import TASKS, make_env  # noqa: E402
 
 
+def run_prefix(task: str, checkpoint: Path) -> str:
+    """Result files start with the task, plus the policy's name when it is not the bundled
+    ``checkpoints/<task>_dpt``: runs of different policies never share a file."""
+    name = Path(checkpoint).name
+    return task if name == f"{task}_dpt" else f"{task}-{name}"
+
+
 def install(policy, method: Method, parallel="auto") -> "tts.Accelerator":
     """``method`` installed on ``policy``; ``ddim:K`` switches the sampler and installs a dense plan (MACs)."""
     if method.kind == "ddim":
@@ -72,7 +79,8 @@ def main(argv=None) -> dict:
         ap.error(str(e))
     torch.manual_seed(args.seed)
     label = method.label
-    out = args.out or REPO / "results" / "robot" / f"{args.task}_{method.slug}_{args.seed}.json"
+    prefix = run_prefix(args.task, args.checkpoint)
+    out = args.out or REPO / "results" / "robot" / f"{prefix}_{method.slug}_{args.seed}.json"
     seeds = list(range(args.seed, args.seed + args.episodes))
     done: dict[int, dict] = {}
     latencies: list[float] = []

@@ -91,3 +91,10 @@ def test_install_builds_the_plan_the_spec_names(tmp_path):
         install(model, parse_method(f"file:{tmp_path / 'missing.json'}"))
     with pytest.raises(ValueError, match="does not run in the tts engine"):
         install(model, parse_method("ddim:4"))
+
+
+def test_result_files_of_other_policies_never_collide_with_the_bundled_ones():
+    import robot
+
+    assert robot.run_prefix("lift", Path("checkpoints/lift_dpt")) == "lift"
+    assert robot.run_prefix("lift", Path("checkpoints/lift_mh_dpt")) == "lift-lift_mh_dpt"
