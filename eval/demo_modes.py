@@ -14,7 +14,9 @@ Reads a dataset written by ``collect_demos.py --mix mh`` (and optionally the sin
     nearest states of *other* demos (z-scored low-dim observations) and the spread of their
     position commands: mean per-axis std, and the fraction of neighbour pairs (both moving)
     whose commands point more than 90 degrees apart; one pure expert is close to unimodal;
-(d) demo length per operator (only successful demos are kept), with each operator's success rate.
+(d) demo length per operator (only successful demos are kept), with each operator's success rate;
+(e) hesitations (steps commanding no motion) and failed grasps per kept demo, per operator;
+(f) square only: where the nut's handle points once the nut is on the peg, per operator.
 """
 from __future__ import annotations
 
@@ -34,6 +36,7 @@ from robot_suite.robomimic import Demo, read_demos  # noqa: E402
 from robot_suite.tasks import OBS_KEYS  # noqa: E402
 
 SYMMETRY = {"lift": np.pi / 2, "can": None, "square": np.pi}  # object yaw period that leaves a grasp the same
+QUAT = {"lift": slice(3, 7), "can": slice(10, 14), "square": slice(10, 14)}  # the object's xyzw quaternion in obs "object"
 
 
 def _yaw(quat_xyzw: np.ndarray) -> np.ndarray:
@@ -53,13 +56,18 @@ def first_grasp(demo: Demo) -> Optional[int]:
     return int(onsets[0]) if len(onsets) else None
 
 
-def grasp_features(demo: Demo) -> Optional[dict]:
+def still_fraction(demo: Demo) -> float:
+    """Fraction of steps that command no motion at all (an operator's pauses)."""
+    return float(np.mean(np.all(demo.actions[:, :6] == 0, axis=1)))
+
+
+def grasp_features(demo: Demo, task: str) -> Optional[dict]:
     t = first_grasp(demo)
     if t is None:
         return None
     eef = demo.obs["robot0_eef_pos"]
     hand_yaw = float(_yaw(demo.obs["robot0_eef_quat"][t]))
-    obj_yaw = float(_yaw(demo.obs["object"][t, 3:7]))
+    obj_yaw = float(_yaw(demo.obs["object"][t, QUAT[task]]))
     turn = float(_wrap(hand_yaw - _yaw(demo.obs["robot0_eef_quat"][0])))
     far = np.flatnonzero(np.linalg.norm(eef[:t, :2] - eef[t, :2], axis=1) > 0.05)
     azimuth = None
@@ -128,7 +136,7 @@ def main(argv=None) -> None:
 
     per_op, feats = {}, {}
     for op in ops:
-        f = [g for g in (grasp_features(d) for d in by_op[op]) if g is not None]
+        f = [g for g in (grasp_features(d, args.task) for d in by_op[op]) if g is not None]
         feats[op] = f
         turn = np.array([g["turn"] for g in f])
         az = np.array([g["azimuth"] for g in f if g["azimuth"] is not None])
@@ -136,6 +144,8 @@ def main(argv=None) -> None:
         per_op[op] = {
             "quality": quality[op], "demos": len(by_op[op]), "success_rate": success.get(op),
             "mean_length": float(lengths.mean()), "std_length": float(lengths.std()),
+            "still_step_fraction": float(np.mean([still_fraction(d) for d in by_op[op]])),
+            "mean_failed_grasps": float(np.mean([int(d.attrs.get("failed_grasps", 0)) for d in by_op[op]])),
             "hand_turn_before_grasp_deg": {"mean": float(np.degrees(turn.mean())), "std": float(np.degrees(turn.std())),
                                            "fraction_ccw_over_10deg": float((turn > np.radians(10)).mean()),
                                            "fraction_cw_over_10deg": float((turn < -np.radians(10)).mean())},
@@ -154,7 +164,7 @@ def main(argv=None) -> None:
     spread = {name: neighbour_spread(ds, args.queries, args.k, scale=scale) for name, ds in sets.items()}
 
     colors = plt.get_cmap("tab10")
-    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+    fig, axes = plt.subplots(2, 3, figsize=(17, 9))
     ax = axes[0, 0]
     period = SYMMETRY[args.task]
     for i, op in enumerate(ops):
@@ -192,6 +202,29 @@ def main(argv=None) -> None:
                         fontsize=9)
     ax.set_ylabel("demo length, steps")
     ax.set_title("(d) successful demo lengths; operator success rate on top")
+    ax = axes[0, 2]
+    xs = np.arange(len(ops))
+    ax.bar(xs - 0.2, [per_op[op]["still_step_fraction"] for op in ops], 0.4, label="fraction of still steps (pauses)")
+    ax.bar(xs + 0.2, [per_op[op]["mean_failed_grasps"] for op in ops], 0.4, label="failed grasps per kept demo")
+    ax.set_xticks(xs)
+    ax.set_xticklabels([op.replace("_operator_", " ") for op in ops])
+    ax.set_title("(e) hesitations and re-grasps in the kept demos")
+    ax.legend(fontsize=8)
+    ax = axes[1, 2]
+    if args.task == "square":  # the handle's direction once the nut is on the peg
+        placed = {op: np.degrees([_yaw(d.obs["object"][-1, QUAT[args.task]]) for d in by_op[op]]) for op in ops}
+        for op in ops:
+            per_op[op]["handle_direction_on_peg_deg"] = {
+                name: float(np.mean(np.abs(_wrap(np.radians(placed[op] - c))) < np.radians(30)))
+                for name, c in (("left_+90", 90), ("robot_180", 180), ("right_-90", -90))}
+        ax.hist([placed[op] for op in ops], bins=np.linspace(-180, 180, 13), color=[colors(i) for i in range(len(ops))],
+                label=ops)
+        ax.set_xlabel("handle direction on the peg, deg (180: toward the robot)")
+        ax.set_ylabel("demos")
+        ax.set_title("(f) where the handle points when the nut is placed")
+        ax.legend(fontsize=7)
+    else:
+        ax.axis("off")
     fig.suptitle(f"{args.task}: scripted MH-style operators ({len(demos)} demos)")
     fig.tight_layout()
     fig_path = args.fig or REPO / "docs" / f"{args.task}_mh_modes.png"

@@ -23,10 +23,26 @@ with an :class:`Operator` style:
   object, as in human reaching; *recorded* in the demo, unlike the DART noise of
   ``collect_demos.py --noise``, which is executed but not recorded).
 
-``python eval/collect_demos.py --task lift --mix mh ...`` records all six operators (per-operator
-success over its seeds in ``results/experts/<task>_mh.json``; the first 50 successes of each kept)
-and writes robomimic's MH filter keys (``mask/better``, ``mask/okay``, ``mask/worse``, their
-pairwise unions and one key per operator) and each demo's ``operator`` and ``quality`` attributes.
+Strategies per task: Lift, the hand yaw picks the cube face alignment (every 90 degrees) nearest
+0 or +-45 degrees (i.e. turns whichever way is shorter, always counter-clockwise, always clockwise),
+or the hand does not turn; Can, the hand holds 0, +-45 or 90 degrees (turning about the vertical
+only: held vertical, the hand cannot reach the goal bin's far corner) or does not turn; Square,
+of the handle's two grasps 180 degrees apart, the one nearest +0.8 or -0.8 rad or the current
+yaw, and the handle goes on the peg pointing toward the robot, left or right.
+
+Recipe (one simulation process, 6 x 100 episodes each, about 8 / 13 / 13 minutes on one core;
+an interrupted run resumes per operator)::
+
+    python eval/collect_demos.py --task lift --mix mh --episodes 100 --seed 0 --out data/lift_mh.hdf5
+    python eval/collect_demos.py --task can --mix mh --episodes 100 --seed 0 --out data/can_mh.hdf5
+    python eval/collect_demos.py --task square --mix mh --episodes 100 --seed 0 --out data/square_mh.hdf5
+    python eval/demo_modes.py --task lift --data data/lift_mh.hdf5 --ph data/lift_expert.hdf5
+
+Each records all six operators (operator k on env seeds seed + 100 k + 0..99; its success rate
+over them in ``results/experts/<task>_mh.json``; its first 50 successes kept) and writes
+robomimic's MH filter keys (``mask/better``, ``mask/okay``, ``mask/worse``, their pairwise unions
+and one key per operator) and each demo's ``operator`` and ``quality`` attributes;
+``eval/demo_modes.py`` plots how the operators differ (``docs/<task>_mh_modes.png``).
 The default operator, :data:`EXPERT`, is the plain expert; experts built without an operator act
 exactly as before operators existed.
 """
