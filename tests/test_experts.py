@@ -3,14 +3,19 @@ import numpy as np
 import pytest
 
 
-@pytest.fixture(scope="module")
-def square_env():
+def _env(task: str):
+    """One robosuite env of ``task`` for a test module (skipped without robosuite)."""
     pytest.importorskip("robosuite")
     from robot_suite.tasks import make_env
 
-    env = make_env("square")
+    env = make_env(task)
     yield env
     env.close()
+
+
+@pytest.fixture(scope="module")
+def square_env():
+    yield from _env("square")
 
 
 def test_square_expert_lifts_and_places_nut(square_env, one_thread):
@@ -42,12 +47,7 @@ def test_square_expert_lifts_and_places_nut(square_env, one_thread):
 
 @pytest.fixture(scope="module")
 def lift_env():
-    pytest.importorskip("robosuite")
-    from robot_suite.tasks import make_env
-
-    env = make_env("lift")
-    yield env
-    env.close()
+    yield from _env("lift")
 
 
 def _episode(env, expert, seed, steps):
