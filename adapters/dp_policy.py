@@ -1,5 +1,5 @@
 """Diffusion Policy (low-dim, transformer) around :class:`TransformerForDiffusion`: normaliser,
-observation history, action chunking, DDPM/DDIM sampling, checkpoint loading.
+observation history, action chunking, DDPM / DDIM / DPM-Solver++ sampling, checkpoint loading.
 
 - ``predict_action({key: [B, To, dim]})`` returns ``action`` [B, Ta, Da] (executed) and
   ``action_pred`` [B, H, Da]; ``reset()`` marks an episode boundary (tts clears its rollout cache).
@@ -24,11 +24,11 @@ from tts.spec import Target, register_model_adapter
 
 from .diffusion_policy import DPTransformerConfig, TransformerForDiffusion, encode_condition, has_condition_encoder
 from .diffusion_policy import _adapt as _adapt_model
-from .schedulers import FastDDPM
+from .schedulers import fast_step_for
 
 Generators = Union[None, torch.Generator, Sequence[torch.Generator]]
 
-__all__ = ["Normalizer", "PolicyConfig", "DiffusionTransformerLowdimPolicy", "load_policy", "save_policy"]
+__all__ = ["SCHEDULERS", "SPACINGS", "Normalizer", "PolicyConfig", "DiffusionTransformerLowdimPolicy", "load_policy", "save_policy"]
 
 
 class Normalizer(nn.Module):
@@ -71,21 +71,35 @@ class PolicyConfig:
     n_action_steps: int = 8
     num_train_timesteps: int = 100
     num_inference_steps: int = 100
-    scheduler: str = "ddpm"  # or "ddim"
+    scheduler: str = "ddpm"  # "ddpm" | "ddim" | "dpm" (DPM-Solver++, 2nd order multistep)
     extra: dict = field(default_factory=dict)
+    timestep_spacing: Optional[str] = None  # None: the scheduler's default as Diffusion Policy sets it
+
+
+SCHEDULERS = ("ddpm", "ddim", "dpm")
+SPACINGS = ("leading", "trailing", "linspace")
 
 
 def _make_scheduler(cfg: PolicyConfig):
-    from diffusers import DDIMScheduler, DDPMScheduler
+    """DDPM / DDIM as Diffusion Policy configures them (squared-cosine betas, clipped x0, epsilon
+    prediction); ``dpm``: DPM-Solver++ (2nd order multistep), whose dynamic thresholding with
+    ``sample_max_value=1`` is the same clipping of x0 to [-1, 1]."""
+    from diffusers import DDIMScheduler, DDPMScheduler, DPMSolverMultistepScheduler
 
-    kw = dict(num_train_timesteps=cfg.num_train_timesteps, beta_schedule="squaredcos_cap_v2",
-              clip_sample=True, prediction_type="epsilon")
+    kw = dict(num_train_timesteps=cfg.num_train_timesteps, beta_schedule="squaredcos_cap_v2", prediction_type="epsilon")
+    if cfg.timestep_spacing is not None:
+        if cfg.timestep_spacing not in SPACINGS:
+            raise ValueError(f"timestep_spacing must be one of {SPACINGS}, got {cfg.timestep_spacing!r}")
+        kw["timestep_spacing"] = cfg.timestep_spacing
     if cfg.scheduler == "ddim":
-        s = DDIMScheduler(set_alpha_to_one=True, steps_offset=0, **kw)
+        s = DDIMScheduler(set_alpha_to_one=True, steps_offset=0, clip_sample=True, **kw)
     elif cfg.scheduler == "ddpm":
-        s = DDPMScheduler(variance_type="fixed_small", **kw)
+        s = DDPMScheduler(variance_type="fixed_small", clip_sample=True, **kw)
+    elif cfg.scheduler == "dpm":
+        s = DPMSolverMultistepScheduler(algorithm_type="dpmsolver++", solver_order=2, thresholding=True,
+                                        sample_max_value=1.0, **kw)
     else:
-        raise ValueError(f"scheduler must be 'ddpm' or 'ddim', got {cfg.scheduler!r}")
+        raise ValueError(f"scheduler must be one of {SCHEDULERS}, got {cfg.scheduler!r}")
     s.set_timesteps(cfg.num_inference_steps)
     return s
 
@@ -105,15 +119,21 @@ class DiffusionTransformerLowdimPolicy(nn.Module):
     def device(self) -> torch.device:
         return self.model.pos_emb.device
 
-    def set_sampler(self, scheduler: Optional[str] = None, steps: Optional[int] = None) -> "DiffusionTransformerLowdimPolicy":
-        """Switch the sampler (``"ddpm"`` / ``"ddim"``) and/or its number of denoising steps, e.g. the
-        fewer-steps baseline DDIM-10. The weights are untouched."""
+    def set_sampler(self, scheduler: Optional[str] = None, steps: Optional[int] = None,
+                    spacing: Optional[str] = None) -> "DiffusionTransformerLowdimPolicy":
+        """Switch the sampler (``"ddpm"`` / ``"ddim"`` / ``"dpm"``), its number of denoising steps and/or
+        its timestep spacing (``"leading"``, ``"trailing"``, ``"linspace"``; None keeps the current
+        one when the scheduler stays, else the scheduler's default), e.g. the fewer-steps baseline
+        DDIM-10. The weights are untouched."""
         steps = self.cfg.num_inference_steps if steps is None else int(steps)
         if not 1 <= steps <= self.cfg.num_train_timesteps:
             raise ValueError(f"steps must be in 1..{self.cfg.num_train_timesteps}, got {steps}")
-        self.cfg = replace(self.cfg, scheduler=scheduler or self.cfg.scheduler, num_inference_steps=steps)
+        scheduler = scheduler or self.cfg.scheduler
+        if spacing is None and scheduler == self.cfg.scheduler:
+            spacing = self.cfg.timestep_spacing
+        self.cfg = replace(self.cfg, scheduler=scheduler, num_inference_steps=steps, timestep_spacing=spacing)
         self.scheduler = _make_scheduler(self.cfg)
-        self._fast = FastDDPM(self.scheduler) if self.cfg.scheduler == "ddpm" else None
+        self._fast = fast_step_for(self.scheduler)
         return self
 
     def reset(self) -> None:
@@ -156,7 +176,8 @@ class DiffusionTransformerLowdimPolicy(nn.Module):
             memory = self.model.condition_memory(self._fast.timesteps, cond)
             for i, t in enumerate(self._fast.timesteps):
                 x = self._fast.step(i, self.model(x, t, cond, memory=memory[:, i]), x, generator)
-        else:
+        else:  # a stateful multistep solver: fresh state for every call
+            self.scheduler.set_timesteps(cfg.num_inference_steps)
             memory = self.model.condition_memory(self.scheduler.timesteps, cond)
             for i, t in enumerate(self.scheduler.timesteps):
                 out = self.model(x, t, cond, memory=memory[:, i])

@@ -90,11 +90,7 @@ def main(argv=None) -> dict:
     pool = episodes[args.first_episode:] or episodes
     dense = load_policy(args.checkpoint)
     fast = load_policy(args.checkpoint)
-    if method.kind == "ddim":  # fewer sampling steps, every branch computed (the summary counts its MACs)
-        fast.set_sampler("ddim", method.n)
-        acc = methods.install(fast, parse_method("dense", kinds=ROBOT_KINDS))
-    else:
-        acc = methods.install(fast, method, parallel={"auto": "auto", "on": True, "off": False}[args.parallel])
+    acc = methods.install_policy(fast, method, parallel={"auto": "auto", "on": True, "off": False}[args.parallel])
     rows = []
     for B in args.batch:
         eps = [pool[i % len(pool)] for i in range(B)]

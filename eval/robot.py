@@ -5,10 +5,12 @@
     python eval/robot.py ... --method uniform:0.93:timestep
     python eval/robot.py ... --method file:results/schedules/lift_steps_0.93.json
     python eval/robot.py ... --method pruner:checkpoints/pruners/lift_tts_0.93@0.93
-    python eval/robot.py ... --method ddim:7
+    python eval/robot.py ... --method ddim:7          # or dpm:5, ddim:3:trailing
+    python eval/robot.py ... --method uniform:0.65:timestep+ddim:20   # TTS on a DDIM-20 base
 
-``--method`` takes the vocabulary of both suites (eval/common/methods.py): dense | ddim:K |
-uniform:RHO:DIRECTION | every_n:N:DIRECTION | file:SCHEDULE.json | pruner:PATH[@RHO] | taylorseer:N:O.
+``--method`` takes the vocabulary of both suites (eval/common/methods.py): dense | ddim:K[:SPACING] |
+dpm:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | file:SCHEDULE.json | pruner:PATH[@RHO] |
+taylorseer:N:O, engine methods optionally on a base sampler (+ddim:K, +dpm:K).
 
 Episodes run in waves of ``--n-envs`` environments whose observations are batched into one policy
 call (batch = n_envs). Test seeds start at 100000, disjoint from the demonstration seeds. Every call
@@ -50,14 +52,6 @@ def run_prefix(task: str, checkpoint: Path) -> str:
     return task if name == f"{task}_dpt" else f"{task}-{name}"
 
 
-def install(policy, method: Method, parallel="auto") -> "tts.Accelerator":
-    """``method`` installed on ``policy``; ``ddim:K`` switches the sampler and installs a dense plan (MACs)."""
-    if method.kind == "ddim":
-        policy.set_sampler("ddim", method.n)
-        return methods.install(policy, parse_method("dense", kinds=ROBOT_KINDS))
-    return methods.install(policy, method, parallel=parallel)
-
-
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--task", choices=sorted(TASKS), required=True)
@@ -94,7 +88,7 @@ def main(argv=None) -> dict:
         print(f"resuming: {len(done)} episodes already in {out}")
 
     policy = load_policy(args.checkpoint, trust_pickle=args.trust_pickle)
-    acc = install(policy, method)
+    acc = methods.install_policy(policy, method)
     envs = [make_env(args.task) for _ in range(min(args.n_envs, len(seeds)))]
     todo = [s for s in seeds if s not in done]
     generator = torch.Generator().manual_seed(args.seed)

@@ -5,7 +5,10 @@
 spec                            method
 ==============================  ================================================================
 ``dense``                       the model as is (an all-compute plan: bit-identical outputs)
-``ddim:K``                      fewer sampling steps: DDIM with K steps, dense
+``ddim:K[:SPACING]``            fewer sampling steps: DDIM with K steps, dense; SPACING of the
+                                timesteps: leading (Diffusion Policy's, the default) | trailing |
+                                linspace
+``dpm:K``                       fewer sampling steps: DPM-Solver++ (2nd order) with K steps, dense
 ``uniform:RHO:DIRECTION``       ``tts.plans.uniform``: RHO of the (step, branch) decisions reuse
 ``every_n:N:DIRECTION``         ``tts.plans.every_n``: full compute every N steps (FORA: timestep)
 ``rotating:RHO:DIRECTION``      ``tts.plans.rotating``: as uniform, the compute steps moved by one
@@ -24,25 +27,58 @@ spec                            method
 
 ``+taylorO`` after a ``file:``, ``pruner:``, ``uniform:`` or ``every_n:`` spec (or ``--forecast O``, a
 separate option) adds a Taylor forecast of order O to timestep reuse; it is part of the row label.
+
+``+ddim:K[:SPACING]`` or ``+dpm:K`` after an engine method (robot suite) runs it on that base sampler
+instead of the policy's own (DDPM-100): e.g. ``uniform:0.65:timestep+ddim:20`` computes 7 of DDIM-20's
+steps. Schedules and pruners must have been made for the base's number of steps.
 """
 from __future__ import annotations
 
 import json
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Optional
 
-__all__ = ["Method", "parse_method", "install", "ROBOT_KINDS", "IMAGE_KINDS", "VOCABULARY"]
+__all__ = ["Method", "Sampler", "parse_method", "install", "install_policy", "ROBOT_KINDS", "IMAGE_KINDS", "VOCABULARY"]
 
-VOCABULARY = ("dense | ddim:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | rotating:RHO:DIRECTION | "
+VOCABULARY = ("dense | ddim:K[:SPACING] | dpm:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | rotating:RHO:DIRECTION | "
               "file:SCHEDULE.json | "
               "pruner:PATH[@RHO] (+taylorO after any of the four) | taylorseer:N:O | toca:N[:RATIO][@RHO] | duca:N[:RATIO][@RHO] | "
-              "diffusers:fbc[:THRESHOLD][@RHO] | diffusers:taylorseer:N:O")
-ROBOT_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer"})
+              "diffusers:fbc[:THRESHOLD][@RHO] | diffusers:taylorseer:N:O; robot engine methods take +ddim:K[:SPACING] | +dpm:K "
+              "(the base sampler)")
+ROBOT_KINDS = frozenset({"dense", "ddim", "dpm", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer"})
 IMAGE_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer", "toca",
                          "duca", "diffusers"})
 _DIRS = ("forward", "timestep", "rollout")
+SAMPLERS = {"ddim": ("leading", "trailing", "linspace"), "dpm": ()}
+
+
+@dataclass(frozen=True)
+class Sampler:
+    """A sampler of a policy: ``scheduler`` ("ddim" | "dpm"), ``steps``, ``spacing`` (None: default)."""
+
+    scheduler: str
+    steps: int
+    spacing: Optional[str] = None
+
+    @property
+    def spec(self) -> str:
+        return f"{self.scheduler}:{self.steps}" + (f":{self.spacing}" if self.spacing else "")
+
+
+def _sampler(text: str, spec: str) -> Sampler:
+    parts = text.split(":")
+    name = parts[0]
+    if name not in SAMPLERS or len(parts) not in (2, 3) or (len(parts) == 3 and not SAMPLERS[name]):
+        raise ValueError(f"method {spec!r}: a sampler is ddim:K[:SPACING] or dpm:K, got {text!r}")
+    k = _number(parts[1], int, "the number of steps", spec)
+    if k < 1:
+        raise ValueError(f"method {spec!r}: {name.upper()} needs at least 1 step")
+    spacing = parts[2] if len(parts) == 3 else None
+    if spacing is not None and spacing not in SAMPLERS[name]:
+        raise ValueError(f"method {spec!r}: unknown timestep spacing {spacing!r}; choose one of {SAMPLERS[name]}")
+    return Sampler(name, k, spacing)
 
 
 @dataclass(frozen=True)
@@ -63,6 +99,7 @@ class Method:
     threshold: Optional[float] = None
     cache: Optional[str] = None  # diffusers: "fbc" | "taylorseer"
     forecast: int = 0
+    sampler: Optional[Sampler] = None  # ddim: / dpm:, or the base sampler of an engine method (+ddim:K)
 
     @property
     def label(self) -> str:
@@ -72,6 +109,8 @@ class Method:
             text = f"{self.kind}:{stem}" + ("" if self.sparsity is None else f"@{self.sparsity:g}")
         else:
             text = self.spec
+        if self.sampler is not None and self.engine:
+            text += f"+{self.sampler.spec}"
         return text + (f"+taylor{self.forecast}" if self.forecast else "")
 
     @property
@@ -81,8 +120,8 @@ class Method:
 
     @property
     def engine(self) -> bool:
-        """True when the method runs in the tts engine (everything but ``ddim`` and ``diffusers:``)."""
-        return self.kind not in ("ddim", "diffusers")
+        """True when the method runs in the tts engine (everything but ``ddim``, ``dpm``, ``diffusers:``)."""
+        return self.kind not in ("ddim", "dpm", "diffusers")
 
 
 def _number(text: str, kind: type, what: str, spec: str):
@@ -113,17 +152,34 @@ def _budget(spec: str) -> tuple[str, Optional[float]]:
 def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0) -> Method:
     """Parse ``spec`` (see the module docstring); ``kinds`` limits what the calling suite runs."""
     spec = spec.strip()
-    suffix = re.fullmatch(r"(.*)\+taylor(\d+)", spec)
-    if suffix:
-        spec, order = suffix.group(1), int(suffix.group(2))
-        if forecast and forecast != order:
-            raise ValueError(f"method {spec!r}+taylor{order} and --forecast {forecast} disagree")
-        forecast = order
+    base = None
+    while True:  # suffixes, in any order: +taylorO, +ddim:K[:SPACING], +dpm:K
+        suffix = re.fullmatch(r"(.*)\+(taylor\d+|(?:ddim|dpm):[^+]*)", spec)
+        if not suffix:
+            break
+        spec, word = suffix.group(1), suffix.group(2)
+        if word.startswith("taylor"):
+            order = int(word[len("taylor"):])
+            if forecast and forecast != order:
+                raise ValueError(f"method {spec!r}+taylor{order} and --forecast {forecast} disagree")
+            forecast = order
+        else:
+            if base is not None:
+                raise ValueError(f"method {spec!r}: more than one base sampler")
+            base = _sampler(word, spec)
     kind = spec.split(":", 1)[0]
     if kind not in IMAGE_KINDS | ROBOT_KINDS:
         raise ValueError(f"unknown method {spec!r}; the vocabulary is {VOCABULARY}")
     if kind not in kinds:
         raise ValueError(f"method {kind!r} is not available in this suite (available: {', '.join(sorted(kinds))})")
+    if base is not None and ("dpm" not in kinds or kind in ("ddim", "dpm", "diffusers")):
+        raise ValueError(f"method {spec!r}: a base sampler (+ddim:K, +dpm:K) applies to engine methods of the robot "
+                         "suite (the image suite takes --steps / --scheduler)")
+    method = _parse_body(spec, kind, forecast)
+    return method if base is None else replace(method, sampler=base)
+
+
+def _parse_body(spec: str, kind: str, forecast: int) -> Method:
     if forecast and kind not in ("file", "pruner", "uniform", "every_n", "rotating"):
         raise ValueError(f"a Taylor forecast (+taylorO, --forecast) applies to timestep reuse of file:, pruner:, "
                          f"uniform: and every_n: methods (taylorseer:N:O has its own order), not to {spec!r}")
@@ -136,13 +192,9 @@ def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0
         if len(parts) != 1:
             raise bad
         return Method(spec, kind)
-    if kind == "ddim":
-        if len(parts) != 2:
-            raise bad
-        k = _number(parts[1], int, "the number of steps", spec)
-        if k < 1:
-            raise ValueError(f"method {spec!r}: DDIM needs at least 1 step")
-        return Method(spec, kind, n=k)
+    if kind in ("ddim", "dpm"):
+        sampler = _sampler(body, spec)
+        return Method(spec, kind, n=sampler.steps, sampler=sampler)
     if kind in ("uniform", "every_n", "rotating"):
         if len(parts) != 3:
             raise bad
@@ -245,6 +297,17 @@ def install(model: Any, method: Method, *, parallel: Any = "auto", memory_width:
                          f"model's has width {memory_width}: it belongs to another model")
     return tts.accelerate(model, pruner.config.directions, pruner=pruner, sparsity=method.sparsity,
                           forecast=method.forecast, parallel=parallel)
+
+
+def install_policy(policy: Any, method: Method, *, parallel: Any = "auto"):
+    """``method`` installed on a Diffusion Policy: its sampler first (``ddim:K``, ``dpm:K``, or the base
+    of ``SPEC+ddim:K``), then the plan (a dense one for the fewer-step samplers: MACs are counted)."""
+    if method.sampler is not None:
+        s = method.sampler
+        policy.set_sampler(s.scheduler, s.steps, s.spacing)
+    if not method.engine:
+        return install(policy, Method("dense", "dense"))
+    return install(policy, method, parallel=parallel)
 
 
 def _rollout_ok(model: Any) -> bool:
