@@ -423,6 +423,7 @@ def dit_scheduler(kind: str = "ddim", steps: int = 50, learn_sigma: bool = False
     ``"ddim"``: eta = 0, the final step goes to alpha_bar = 1 (deterministic given the initial noise).
     ``"ddpm"``: ancestral steps, variance ``learned_range`` for models with learned sigma, else
     ``fixed_small``.
+    ``"dpm"``: DPM-Solver++ (2nd order multistep, timesteps spaced as diffusers' default).
     """
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
@@ -436,8 +437,14 @@ def dit_scheduler(kind: str = "ddim", steps: int = 50, learn_sigma: bool = False
 
         sched = DDPMScheduler(**DIT_BETAS, clip_sample=False, prediction_type="epsilon", timestep_spacing="leading",
                               variance_type="learned_range" if learn_sigma else "fixed_small")
+    elif kind == "dpm":
+        from diffusers import DPMSolverMultistepScheduler
+
+        # fed eps only (diffusers' learned-variance branch of this solver assumes 3 channels)
+        sched = DPMSolverMultistepScheduler(**DIT_BETAS, algorithm_type="dpmsolver++", solver_order=2,
+                                            prediction_type="epsilon")
     else:
-        raise ValueError(f"scheduler must be 'ddim' or 'ddpm' (or a diffusers scheduler), got {kind!r}")
+        raise ValueError(f"scheduler must be 'ddim', 'ddpm' or 'dpm' (or a diffusers scheduler), got {kind!r}")
     sched.set_timesteps(steps)
     return sched
 
@@ -451,7 +458,7 @@ def sample_dit(model: DiT, labels: Union[torch.Tensor, Sequence[int]], *, steps:
     cfg_scale: classifier-free guidance on the eps channels as in the official ``forward_with_cfg``; the
     batch is [cond; uncond] (labels, then the null class ``num_classes``), so a tts plan or pruner sees
     2B rows and may decide differently for the two halves. ``cfg_scale == 1`` runs the cond half only.
-    scheduler: ``"ddim"`` / ``"ddpm"`` (see :func:`dit_scheduler`) or a diffusers scheduler (its
+    scheduler: ``"ddim"`` / ``"ddpm"`` / ``"dpm"`` (see :func:`dit_scheduler`) or a diffusers scheduler (its
     ``set_timesteps(steps)`` is called). The condition is encoded once per call
     (:meth:`DiT.condition_memory`, where a tts pruner reads it) and each step runs
     ``model(x, t, y, c=memory[:, k])``. Learned-sigma outputs: the first C channels are eps.

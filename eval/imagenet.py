@@ -84,8 +84,9 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
                     help="file: / pruner: methods: Taylor forecast of order O for timestep reuse (0 = plain reuse)")
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--cfg", type=float, default=1.5, help="classifier-free guidance scale (1 = none)")
-    ap.add_argument("--scheduler", choices=("ddim", "ddpm"), default="ddim",
-                    help="ddpm's step noise depends on the batch composition (not per index)")
+    ap.add_argument("--scheduler", choices=("ddim", "ddpm", "dpm"), default="ddim",
+                    help="the base sampler (dpm: DPM-Solver++); ddpm's step noise depends on the batch "
+                         "composition (not per index)")
     ap.add_argument("--num-samples", type=int, default=2000)
     ap.add_argument("--batch", type=int, default=64, help="images per sampling call and process")
     ap.add_argument("--seed", type=int, default=0)
@@ -98,8 +99,10 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     ap.add_argument("--no-progress", action="store_true")
     args = parse_args(ap, argv)
     method = parse_method(args.method, kinds=IMAGE_KINDS, forecast=args.forecast)
-    if method.kind == "ddim":
-        args.steps = method.n
+    if method.kind in ("ddim", "dpm"):  # fewer steps of the untouched model
+        if method.sampler.spacing is not None:
+            ap.error(f"{args.method}: the image suite spaces timesteps as DiT does (leading); drop the spacing")
+        args.steps, args.scheduler = method.n, method.kind
     check_args(args, method)
 
     model = load_dit(args.model, config=args.config)  # clear FileNotFoundError before any process group starts
@@ -200,7 +203,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
         "method_spec": args.method,
         "plan": plan_desc,
         "sparsity_target": method.sparsity,
-        "interval": method.n if method.kind != "ddim" else None,
+        "interval": method.n if method.kind not in ("ddim", "dpm") else None,
         "taylor_order": method.order or None,
         "forecast": args.forecast,
         "fresh_ratio": getattr(getattr(acc, "plan", None), "fresh_ratio", None),

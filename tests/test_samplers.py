@@ -136,3 +136,21 @@ def test_install_policy_sets_the_base_sampler_first():
         assert acc.plan.describe() == "dense" and len(acc.summary().calls[-1].steps) == 3
     with pytest.raises(ValueError, match="scheduler must be one of"):
         pol.set_sampler("euler", 4)
+
+
+@pytest.mark.parametrize("scheduler", ["ddim", "dpm"])
+def test_dit_all_compute_plan_is_bit_identical_on_both_samplers(scheduler):
+    from conftest import randomize, tiny_official_dit
+    from tts.adapters.dit import sample_dit
+
+    model = randomize(tiny_official_dit(), 0).eval()
+    noise = torch.randn(2, 4, 8, 8, generator=torch.Generator().manual_seed(0))
+    ref = sample_dit(model, [1, 2], steps=6, cfg_scale=1.5, noise=noise, scheduler=scheduler)
+    with tts.accelerate(model, ("forward", "timestep"), plan=tts.plans.dense()) as acc:
+        got = sample_dit(model, [1, 2], steps=6, cfg_scale=1.5, noise=noise, scheduler=scheduler)
+        assert len(acc.summary().calls[-1].steps) == 6
+    assert torch.equal(ref, got)
+    with tts.accelerate(model, ("timestep",), plan=tts.plans.uniform(0.5, "timestep")) as acc:
+        sparse = sample_dit(model, [1, 2], steps=6, cfg_scale=1.5, noise=noise, scheduler=scheduler)
+        assert acc.summary().sparsity() == pytest.approx(0.5)
+    assert torch.isfinite(sparse).all() and not torch.equal(sparse, ref)

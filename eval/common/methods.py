@@ -48,7 +48,7 @@ VOCABULARY = ("dense | ddim:K[:SPACING] | dpm:K | uniform:RHO:DIRECTION | every_
               "diffusers:fbc[:THRESHOLD][@RHO] | diffusers:taylorseer:N:O; robot engine methods take +ddim:K[:SPACING] | +dpm:K "
               "(the base sampler)")
 ROBOT_KINDS = frozenset({"dense", "ddim", "dpm", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer"})
-IMAGE_KINDS = frozenset({"dense", "ddim", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer", "toca",
+IMAGE_KINDS = frozenset({"dense", "ddim", "dpm", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer", "toca",
                          "duca", "diffusers"})
 _DIRS = ("forward", "timestep", "rollout")
 SAMPLERS = {"ddim": ("leading", "trailing", "linspace"), "dpm": ()}
@@ -172,7 +172,7 @@ def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0
         raise ValueError(f"unknown method {spec!r}; the vocabulary is {VOCABULARY}")
     if kind not in kinds:
         raise ValueError(f"method {kind!r} is not available in this suite (available: {', '.join(sorted(kinds))})")
-    if base is not None and ("dpm" not in kinds or kind in ("ddim", "dpm", "diffusers")):
+    if base is not None and (kinds != ROBOT_KINDS or kind in ("ddim", "dpm", "diffusers")):
         raise ValueError(f"method {spec!r}: a base sampler (+ddim:K, +dpm:K) applies to engine methods of the robot "
                          "suite (the image suite takes --steps / --scheduler)")
     method = _parse_body(spec, kind, forecast)

@@ -154,7 +154,7 @@ def build_accelerator(model: DiT, method: Method, *, steps: int, cfg: float, cal
     """The accelerator of ``method`` (None for dense and ``ddim:K``); for ``diffusers:`` a
     :class:`DiffusersCache` on a converted copy (sample ``acc.model``). An FBCache budget is calibrated
     on ``calib_seed`` noise (never the evaluation's); what it found goes into ``calibration``."""
-    if method.kind in ("dense", "ddim"):
+    if method.kind in ("dense", "ddim", "dpm"):
         return None
     if method.kind == "diffusers":
         from tts.adapters.dit_diffusers import DiffusersDiT
