@@ -262,6 +262,30 @@ def has_condition_encoder(model: nn.Module) -> bool:
             and isinstance(model.cond_pos_emb, torch.Tensor) and isinstance(model.encoder, nn.Module))
 
 
+def _skip_blocks(model: nn.Module):
+    """``Target.skip_blocks`` of a decoder DP transformer, from the official attributes: the forward
+    with the decoder layers replaced by ``+ delta`` (condition encoder and time embedding unused).
+    The position embedding plus ``delta`` is kept between steps that reuse the same sum."""
+    memo: dict = {}
+
+    def skip(args: tuple, kwargs: dict, delta: torch.Tensor) -> torch.Tensor:
+        sample = kwargs["sample"] if "sample" in kwargs else args[0]
+        n = sample.shape[1]
+        if model.drop.training and model.drop.p > 0:  # dropout between the embedding and the blocks
+            x = model.drop(model.input_emb(sample) + model.pos_emb[:, :n, :]) + delta
+        else:
+            hit = memo.get("pos")
+            if hit is None or hit[0] is not delta or hit[1] != n:
+                memo["pos"] = hit = (delta, n, model.pos_emb[:, :n, :] + delta)
+            x = model.input_emb(sample) + hit[2]
+        norm = model.decoder.norm
+        if norm is not None:
+            x = norm(x)
+        return model.head(model.ln_f(x))
+
+    return skip
+
+
 def _adapt(model: Any) -> Optional[Target]:
     """A DP transformer: its decoder layers (or BERT-mode encoder layers) are the branch sites."""
     if not is_dp_transformer(model):
@@ -272,7 +296,8 @@ def _adapt(model: Any) -> Optional[Target]:
     else:
         sites = [(f"encoder.layers.{i}", m, encoder_layer_spec(m)) for i, m in enumerate(model.encoder.layers)]
         chain = False
-    target = Target(denoiser=model, sites=sites, description="Diffusion Policy transformer", chain=chain)
+    target = Target(denoiser=model, sites=sites, description="Diffusion Policy transformer", chain=chain,
+                    skip_blocks=_skip_blocks(model) if chain else None)
     if callable(getattr(model, "condition_memory", None)):
         target.condition = (model, "condition_memory")
     elif not has_condition_encoder(model):

@@ -99,3 +99,34 @@ def test_no_fusion_without_a_declared_chain_or_for_post_norm_layers(norm_first):
         layer.norm_first = norm_first
     with tts.accelerate(dp, ("timestep",), plan=plan) as acc:
         assert acc.fuse_steps == norm_first
+
+
+@pytest.mark.parametrize("fuse_norm", [False, True])
+def test_fused_dp_steps_skip_the_decoder_entirely(fuse_norm):
+    """With Target.skip_blocks a fused step runs embedding + sum + head only: no decoder layer is
+    entered, and the outputs equal branch-by-branch reuse (up to summation order)."""
+    model = randomize(tiny_dp()).eval()
+    if fuse_norm:  # an nn.TransformerDecoder(norm=...) applies it after the chain
+        model.decoder.norm = torch.nn.LayerNorm(model.pos_emb.shape[-1])
+        randomize(model.decoder.norm, 3)
+    nb = 3 * 3
+    plan = whole_steps({0, 4, 9}, nb=nb)
+    g = torch.Generator().manual_seed(6)
+    x0, cond = torch.randn(2, 6, 5, generator=g), torch.randn(2, 2, 7, generator=g)
+    entered = []
+    hook = model.decoder.layers[0].register_forward_pre_hook(lambda m, a: entered.append(1))
+
+    def run(fuse):
+        entered.clear()
+        outs = []
+        with torch.no_grad(), tts.accelerate(model, ("timestep",), plan=plan, fuse_steps=fuse) as acc:
+            for k in range(STEPS):
+                outs.append(model(x0 + 0.1 * k, torch.tensor(90 - 7 * k), cond))
+            return torch.stack(outs), acc.summary().calls[-1].fused_steps, len(entered)
+
+    fused, n_fused, entered_fused = run(True)
+    plain, n_plain, entered_plain = run(False)
+    hook.remove()
+    torch.testing.assert_close(fused, plain, rtol=1e-5, atol=1e-5)
+    assert n_fused == STEPS - 3 and n_plain == 0
+    assert entered_plain == STEPS + 1 and entered_fused == 3 + 1  # steps that run the blocks + one MAC profile

@@ -4,8 +4,8 @@ A *sampling call* is one run of the denoising loop (K forwards of the denoiser);
 sequence of calls of a robot policy whose rollout cache is shared. A call starts either explicitly
 (a boundary method such as ``predict_action`` was entered, or :meth:`CallTracker.mark_call`) or,
 without boundaries, when the timestep argument stops moving monotonically (down for DDPM/DDIM, up
-for some flow samplers; from step 2 on, a repeated timestep continues the call, as some solvers'
-schedules repeat one).
+for some flow samplers). A repeated timestep starts a call too: solvers whose schedule repeats one
+need boundaries or explicit calls.
 """
 from __future__ import annotations
 
@@ -104,8 +104,8 @@ class CallTracker:
         elif self.k == 1:
             new = t == self._t0
             self._tdir = 0.0 if new else (1.0 if t > self._t0 else -1.0)
-        else:  # a repeated timestep continues the call (solvers that allow duplicated timesteps)
-            new = (t - self._t_prev) * self._tdir < 0
+        else:
+            new = (t - self._t_prev) * self._tdir <= 0
         if new:
             self._t0 = t
         self._t_prev = t

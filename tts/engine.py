@@ -104,6 +104,7 @@ class Accelerator:
         self._layout = layout
         # whole-step fusion (see tts.spec): one add per step where every branch reuses T or R
         self.fuse_steps = bool(fuse_steps and target.chain and all(s.spec.residual for s in self.sites))
+        self._skip_blocks = target.skip_blocks if self.fuse_steps else None
         if forecast and "timestep" not in self.directions:
             raise ValueError("forecast= applies to the timestep direction, which is not enabled")
         self.cache = ReuseCache(layout.kind_index, layout.num_kinds, self.directions, forecast=forecast,
@@ -308,7 +309,11 @@ class Accelerator:
         ex.in_step = True
         t0 = time.perf_counter()
         try:
-            out = orig(*args, **kwargs)
+            if ex.fused and self._skip_blocks is not None:
+                ex.fused = ex._fuse_pending = False
+                out = self._skip_blocks(args, kwargs, self.cache.step_total(ex._row, k))
+            else:
+                out = orig(*args, **kwargs)
         finally:
             ex.in_step = False
         record.timing["decoder"] = record.timing.get("decoder", 0.0) + time.perf_counter() - t0

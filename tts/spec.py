@@ -23,7 +23,9 @@ is exactly ``x + run(0, ...) + run(1, ...) + ...`` with ``x`` its first argument
 form one chain on the residual stream (``Target.chain``), a step at which every branch of every
 block reuses the timestep or rollout cache is the input plus a sum of cached tensors; the engine
 then adds that sum once at the first block and passes the stream through the others (no per-branch
-work, and the per-order sums of a forecast are kept between computes).
+work, and the per-order sums of a forecast are kept between computes). Where the adapter also
+gives ``Target.skip_blocks``, such a step does not enter the blocks at all: the denoiser's input
+embedding, the sum, and its output head.
 
 Backbone knowledge lives in ``tts.adapters``; the core only keeps the registries below.
 """
@@ -136,6 +138,10 @@ class Target:
     chain: the sites run one after another on one residual stream with nothing in between
         (``for blk in blocks: x = blk(x, ...)``, x the first positional argument). With every
         site's ``BlockSpec.residual``, whole-step reuse is fused (see the module docstring).
+    skip_blocks: ``(args, kwargs, delta) -> output``, optional with ``chain``: the denoiser's output for
+        these arguments when the whole chain of blocks is replaced by adding ``delta`` to the stream
+        that enters the first block (what the blocks of a fused step amount to). A fused step then
+        runs only the model's input embedding and output head, none of its block machinery.
     """
 
     denoiser: nn.Module
@@ -150,6 +156,7 @@ class Target:
     batch_of: Callable[[tuple, dict], int] = _first_tensor_batch
     description: str = ""
     chain: bool = False
+    skip_blocks: Optional[Callable[[tuple, dict, Any], Any]] = None
 
 
 BlockMatcher = Callable[[nn.Module], Optional[BlockSpec]]
