@@ -195,6 +195,14 @@ class TransformerForDiffusion(nn.Module):
 CONDITION_ATTRIBUTES = ("time_emb", "cond_obs_emb", "cond_pos_emb", "drop", "encoder")
 
 
+_TOKENWISE = (nn.Linear, nn.Mish, nn.GELU, nn.ReLU, nn.SiLU, nn.Tanh, nn.Identity, nn.Dropout)
+
+
+def _tokenwise(encoder: nn.Module) -> bool:
+    """Whether the condition encoder maps every token independently (DP's ``n_cond_layers = 0`` MLP)."""
+    return isinstance(encoder, nn.Sequential) and all(isinstance(m, _TOKENWISE) for m in encoder)
+
+
 def encode_condition(model: nn.Module, timesteps: Any, cond: Optional[torch.Tensor],
                      batch: Optional[int] = None) -> torch.Tensor:
     """The condition memory of a DP transformer for all K ``timesteps`` of a call, [B, K, T_cond,
@@ -206,6 +214,17 @@ def encode_condition(model: nn.Module, timesteps: Any, cond: Optional[torch.Tens
     K = timesteps.shape[0]
     B = cond.shape[0] if cond is not None else (batch or 1)
     time = model.time_emb(timesteps.to(model.pos_emb.device))  # [K, D]
+    if _tokenwise(model.encoder) and not (model.drop.training and model.drop.p > 0):
+        # an MLP encoder (n_cond_layers = 0) maps each token alone: the time token once per step and
+        # the observation tokens once per call, instead of every token at every step (B*K*Tc rows)
+        pos = model.cond_pos_emb
+        time_out = model.encoder(model.drop(time + pos[0, :1, :]))  # [K, D]
+        parts = [time_out[None, :, None, :].expand(B, K, 1, -1)]
+        if model.cond_obs_emb is not None:
+            obs = model.cond_obs_emb(cond)  # [B, To, D]
+            obs_out = model.encoder(model.drop(obs + pos[:, 1:1 + obs.shape[1], :]))
+            parts.append(obs_out[:, None].expand(B, K, -1, -1))
+        return torch.cat(parts, dim=2)
     tokens = time[None, :, None, :].expand(B, K, 1, -1)
     if model.cond_obs_emb is not None:
         obs = model.cond_obs_emb(cond)  # [B, To, D]

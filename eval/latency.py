@@ -11,7 +11,12 @@ fast loop: batched condition encoder, precomputed DDPM coefficients), timed in t
 alternating order. Reported per batch size: median latency of a policy call, speed-up = dense median
 / accelerated median, calls/s (= 1 / latency) and actions/s per env (= n_action_steps / latency),
 realised sparsity, MACs (dense, realised, pruner, realised + pruner) and the median timing breakdown
-of the accelerated call (encoder, pruner, wait, decoder, total) from ``summary()``.
+of the accelerated call (encoder, pruner, wait, decoder, reuse_steps, engine, scheduler_and_rest,
+total) from ``summary()``.
+
+``--reference`` replaces dense by another method as the baseline timed alongside, e.g. ``ddim:7``, or
+``ddim:matched``: DDIM with as many steps as the accelerated call computes (per sample, rounded), the
+cost of the reuse steps made visible (``ratio`` = accelerated / reference latency).
 """
 from __future__ import annotations
 
@@ -63,6 +68,14 @@ def batch_frames(policy, episodes: list[dict], n_frames: int) -> list[dict]:
     return frames
 
 
+def computed_steps(summary) -> int:
+    """Steps per sample that compute at least one branch, in the last call that was not an episode's
+    dense first call (rounded mean over the batch)."""
+    call = [c for c in summary.calls if not c.dense][-1]
+    d = call.decisions()  # [K, B, nb]
+    return int(round(float((d == 0).any(-1).float().sum(0).mean())))
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--task", required=True)
@@ -76,12 +89,19 @@ def main(argv=None) -> dict:
     ap.add_argument("--trials", type=int, default=5)
     ap.add_argument("--frames", type=int, default=4, help="timed calls per trial (after the dense frame 0)")
     ap.add_argument("--first-episode", type=int, default=96, help="episodes used (default: past the pruner's training set)")
+    ap.add_argument("--reference", default="dense",
+                    help="the baseline timed alongside: dense (default), a method spec, or ddim:matched (DDIM with "
+                         "the accelerated call's number of computed steps)")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--resume", action="store_true", help="skip when the result file exists")
     args = parse_args(ap, argv)
     method = parse_method(args.method, kinds=ROBOT_KINDS, forecast=args.forecast)
+    matched = args.reference == "ddim:matched"
+    reference = None if args.reference == "dense" or matched else parse_method(args.reference, kinds=ROBOT_KINDS)
     label = method.label
     suffix = "" if args.parallel == "auto" else f"_parallel-{args.parallel}"
+    if args.reference != "dense":
+        suffix += "_vs_" + ("ddim-matched" if matched else reference.slug)
     out_path = args.out or REPO / "results" / "robot" / f"latency_{args.task}_{method.slug}{suffix}.json"
     if args.resume and out_path.exists():
         print(f"[skip] {out_path} exists")
@@ -91,13 +111,22 @@ def main(argv=None) -> dict:
     dense = load_policy(args.checkpoint)
     fast = load_policy(args.checkpoint)
     acc = methods.install_policy(fast, method, parallel={"auto": "auto", "on": True, "off": False}[args.parallel])
+    ref_acc = methods.install_policy(dense, reference) if reference is not None else None
     rows = []
     for B in args.batch:
         eps = [pool[i % len(pool)] for i in range(B)]
         frames = batch_frames(dense, eps, args.frames)
-        for pol in (dense, fast):  # warm-up (allocator, profiling of the first shape)
-            time_calls(pol, frames[:2], 0)
+        time_calls(fast, frames, 0)  # warm-up (allocator, profiling of the first shape)
+        if matched:
+            steps = computed_steps(acc.summary())
+            if ref_acc is not None:
+                ref_acc.remove()
+            ref_acc = methods.install_policy(dense.set_sampler("ddpm", dense.cfg.num_train_timesteps),
+                                             parse_method(f"ddim:{steps}", kinds=ROBOT_KINDS))
+        time_calls(dense, frames[:2], 0)
         acc.calls.clear()
+        if ref_acc is not None:
+            ref_acc.calls.clear()
         t_dense, t_fast = [], []
         for trial in tqdm(range(args.trials), desc=f"latency batch {B}"):
             order = (dense, fast) if trial % 2 == 0 else (fast, dense)
@@ -109,9 +138,17 @@ def main(argv=None) -> dict:
         macs_dense, macs_real = s.macs(last)
         md, mf = float(np.median(t_dense)), float(np.median(t_fast))
         n_act = dense.cfg.n_action_steps
+        ref_info = {}
+        if ref_acc is not None:
+            rs = ref_acc.summary()
+            ref_info = {"reference": ref_acc.plan.describe() if not matched else f"ddim:{steps}",
+                        "reference_sampler": f"{dense.cfg.scheduler}-{dense.cfg.num_inference_steps}",
+                        "ratio": mf / md,
+                        "reference_timing_median_ms": {k: v * 1e3 for k, v in rs.timing().items()},
+                        "computed_steps_per_call": computed_steps(s)}
         rows.append({
-            "batch": B,
-            "dense_ms": {"median": md * 1e3, "p90": float(np.percentile(t_dense, 90)) * 1e3, "calls": len(t_dense)},
+            "batch": B, **ref_info,
+            ("dense_ms" if ref_acc is None else "reference_ms"): {"median": md * 1e3, "p90": float(np.percentile(t_dense, 90)) * 1e3, "calls": len(t_dense)},
             "accelerated_ms": {"median": mf * 1e3, "p90": float(np.percentile(t_fast, 90)) * 1e3, "calls": len(t_fast)},
             "speedup": md / mf,
             "calls_per_s": {"dense": 1 / md, "accelerated": 1 / mf},
@@ -122,12 +159,14 @@ def main(argv=None) -> dict:
             "timing_median_ms": {k: v * 1e3 for k, v in s.timing(sparse_calls).items()},
         })
         r = rows[-1]
-        print(f"batch {B}: dense {md * 1e3:.1f} ms, {label} {mf * 1e3:.1f} ms -> {r['speedup']:.2f}x; "
+        ref_name = "dense" if ref_acc is None else f"{dense.cfg.scheduler}-{dense.cfg.num_inference_steps}"
+        print(f"batch {B}: {ref_name} {md * 1e3:.1f} ms, {label} {mf * 1e3:.1f} ms -> {r['speedup']:.2f}x; "
               f"sparsity {r['sparsity']:.3f}; MACs {macs_dense / max(macs_real + last.pruner_macs, 1):.2f}x fewer "
               f"(pruner included); breakdown {', '.join(f'{k} {v:.1f}' for k, v in r['timing_median_ms'].items())}")
     res = {
         "provenance": provenance(seeds={"noise": "1000 * trial + frame"}),
         "task": args.task, "checkpoint": str(args.checkpoint), "method": label, "parallel": args.parallel,
+        "reference": args.reference, "torch_threads": torch.get_num_threads(),
         "trajectories": str(args.trajectories), "episodes_from": args.first_episode,
         "protocol": "per trial: reset, untimed dense frame 0, timed frames 1..frames; dense = untouched policy, "
                     "same trials, alternating order; medians",

@@ -297,6 +297,7 @@ class Accelerator:
         if self.removed:
             return orig(*args, **kwargs)
         tracker, ex = self.tracker, self.executor
+        t_enter = time.perf_counter()
         if tracker.begin_step(args, kwargs):
             self._start_call(args, kwargs)
         k = tracker.k
@@ -307,16 +308,23 @@ class Accelerator:
         elif k == 0:
             self._maybe_profile(orig, args, kwargs, tracker.batch)
         ex.in_step = True
+        timing = record.timing
         t0 = time.perf_counter()
+        skip = ex.fused and self._skip_blocks is not None
         try:
-            if ex.fused and self._skip_blocks is not None:
+            if skip:
                 ex.fused = ex._fuse_pending = False
                 out = self._skip_blocks(args, kwargs, self.cache.step_total(ex._row, k))
             else:
                 out = orig(*args, **kwargs)
         finally:
             ex.in_step = False
-        record.timing["decoder"] = record.timing.get("decoder", 0.0) + time.perf_counter() - t0
+        t1 = time.perf_counter()
+        timing["decoder"] = timing.get("decoder", 0.0) + t1 - t0
+        if skip:
+            timing["reuse_steps"] = timing.get("reuse_steps", 0.0) + t1 - t0
+        if k:  # step 0's bookkeeping includes starting the call (and the MAC profile of a new shape)
+            timing["engine"] = timing.get("engine", 0.0) + t0 - t_enter
         tracker.end_step()
         return out
 

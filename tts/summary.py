@@ -22,7 +22,9 @@ class CallRecord:
     dense: bool = False
     steps: list[torch.Tensor] = field(default_factory=list)
     fallbacks: int = 0
-    timing: dict[str, float] = field(default_factory=dict)  # seconds: encoder, pruner, wait, decoder, total
+    # seconds: encoder, pruner, wait, decoder (every step's denoiser forward; reuse_steps: the part spent in
+    # fused steps that skip the blocks), engine (per-step bookkeeping from step 1 on), total
+    timing: dict[str, float] = field(default_factory=dict)
     pruner_macs: float = 0.0  # MACs of the pruner in this call (whole batch)
     token_work: dict[int, float] = field(default_factory=dict)  # branch -> sum of token fractions refreshed
     fused_steps: int = 0  # steps run as one add of cached outputs (every branch reused, see tts.spec)
@@ -123,8 +125,8 @@ class Summary:
         return dense, realised
 
     def timing(self, calls: Optional[Sequence[CallRecord]] = None) -> dict[str, float]:
-        """Median seconds per call of each recorded phase (encoder, pruner, wait, decoder,
-        scheduler_and_rest, total) over ``calls`` (default: the calls that were not dense first calls of an episode)."""
+        """Median seconds per call of each recorded phase (encoder, pruner, wait, decoder, reuse_steps
+        (part of decoder), engine, scheduler_and_rest, total) over ``calls`` (default: the calls that were not dense first calls of an episode)."""
         calls = [c for c in self.calls if not c.dense] if calls is None else calls
         rows = []
         for c in calls:
@@ -132,7 +134,7 @@ class Summary:
             if "total" in t:  # the sampling loop outside the denoiser: scheduler steps, normalisation, noise
                 # ("wait" holds the pruner's time the sampling thread spent on it: all of it when it
                 # ran in that thread, the part step 0 did not cover when it overlapped)
-                t["scheduler_and_rest"] = t["total"] - sum(t.get(k, 0.0) for k in ("encoder", "wait", "decoder"))
+                t["scheduler_and_rest"] = t["total"] - sum(t.get(k, 0.0) for k in ("encoder", "wait", "decoder", "engine"))
             rows.append(t)
         keys = sorted({k for t in rows for k in t})
         return {k: float(torch.tensor([t[k] for t in rows if k in t]).median()) for k in keys}
