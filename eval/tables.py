@@ -196,6 +196,8 @@ def latency_table(folder: Path) -> str:
             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for path in sorted(folder.glob("latency_*.json")):
         r = json.loads(path.read_text())
+        if r.get("reference", "dense") != "dense":
+            continue  # timed against another baseline: reuse_cost_table
         for row in r["rows"]:
             m = row["macs_per_call"]
             brk = ", ".join(f"{k} {v:.1f}" for k, v in row["timing_median_ms"].items())
@@ -204,6 +206,23 @@ def latency_table(folder: Path) -> str:
                 f"{row['accelerated_ms']['median']:.1f} | **{row['speedup']:.2f}x** | {row['sparsity']:.3f} | "
                 f"{m['dense'] / max(m['realised_with_pruner'], 1):.2f} | {m['pruner'] / m['dense']:.4f} | {brk} | "
                 f"`{r['provenance']['git_sha'][:10]}` |")
+    return "\n".join(rows) + "\n"
+
+
+def reuse_cost_table(folder: Path) -> str:
+    """A sparse call against DDIM with the same computed steps (eval/latency.py --reference ddim:matched):
+    what the reuse steps, the longer schedule and the pruner add."""
+    rows = ["| task | method | batch | DDIM-k (k = computed steps) ms | method ms | method / DDIM-k | "
+            "breakdown of the method's call, ms (median) | DDIM-k breakdown | git SHA |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for path in sorted(folder.glob("latency_*_vs_*.json")):
+        r = json.loads(path.read_text())
+        for row in r["rows"]:
+            brk = ", ".join(f"{k} {v:.1f}" for k, v in row["timing_median_ms"].items())
+            ref = ", ".join(f"{k} {v:.1f}" for k, v in row["reference_timing_median_ms"].items())
+            rows.append(f"| {r['task']} | `{r['method']}` | {row['batch']} | {row['reference']}: "
+                        f"{row['reference_ms']['median']:.1f} | {row['accelerated_ms']['median']:.1f} | "
+                        f"**{row['ratio']:.2f}x** | {brk} | {ref} | `{r['provenance']['git_sha'][:10]}` |")
     return "\n".join(rows) + "\n"
 
 
@@ -342,7 +361,7 @@ def headline_robot(folder: Path) -> str:
     speed: dict[tuple[str, str], dict[int, float]] = {}
     for path in sorted(folder.glob("latency_*.json")):
         r = json.loads(path.read_text())
-        if r.get("parallel", "auto") == "auto":
+        if r.get("parallel", "auto") == "auto" and r.get("reference", "dense") == "dense":
             speed[(r["task"], r["method"])] = {row["batch"]: row["speedup"] for row in r["rows"]}
     rows = ["| task | method | success (test episodes) | vs dense, paired (95% CI) | speed-up batch 1 / 28 "
             "| MACs dense DDPM-100 / method |", "|---|---|---|---|---|---|"]
@@ -400,6 +419,7 @@ def main() -> None:
     robot, image = REPO / "results" / "robot", REPO / "results" / "image"
     docs = REPO / "docs" / "results"
     fill(docs / "robot.md", {"robot": summary_table(robot), "latency": latency_table(robot),
+                             "reuse-cost": reuse_cost_table(robot),
                              "agreement": agreement_table(robot), "headroom": headroom_table(robot),
                              "rollout-age": rollout_age_table(robot),
                              "runs": robot_table(robot)})

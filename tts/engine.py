@@ -323,7 +323,7 @@ class Accelerator:
         timing["decoder"] = timing.get("decoder", 0.0) + t1 - t0
         if skip:
             timing["reuse_steps"] = timing.get("reuse_steps", 0.0) + t1 - t0
-        if k:  # step 0's bookkeeping includes starting the call (and the MAC profile of a new shape)
+        if k > 1:  # steps 0 and 1 also start the call (MAC profile) and wait for the pruner ("wait")
             timing["engine"] = timing.get("engine", 0.0) + t0 - t_enter
         tracker.end_step()
         return out

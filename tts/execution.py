@@ -107,6 +107,7 @@ class BranchExecutor:
         self._soft_codes: list[int] = list(plan.codes)
         self._all_compute = torch.zeros(1, len(layout), dtype=torch.int8)
         self._memo: dict[int, tuple] = {}
+        self._forms: dict[tuple, tuple] = {}
         # per call
         self.record: Optional[CallRecord] = None
         self.batch = 0
@@ -156,7 +157,16 @@ class BranchExecutor:
         record.steps.append(rows)
         memo = self._memo.get(id(rows))
         if memo is None or memo[0] is not rows:
-            memo = (rows,) + self._fast_form(rows, batch)
+            # a pruner gives a new tensor every step: decision rows equal in content share one form
+            key = (tuple(rows.shape), rows.numpy().tobytes()) if rows.device.type == "cpu" else None
+            form = self._forms.get(key) if key is not None else None
+            if form is None:
+                form = self._fast_form(rows, batch)
+                if key is not None:
+                    if len(self._forms) > 4096:
+                        self._forms.clear()
+                    self._forms[key] = form
+            memo = (rows,) + form
             if len(self._memo) > 4096:
                 self._memo.clear()
             self._memo[id(rows)] = memo

@@ -23,7 +23,7 @@ class CallRecord:
     steps: list[torch.Tensor] = field(default_factory=list)
     fallbacks: int = 0
     # seconds: encoder, pruner, wait, decoder (every step's denoiser forward; reuse_steps: the part spent in
-    # fused steps that skip the blocks), engine (per-step bookkeeping from step 1 on), total
+    # fused steps that skip the blocks), engine (per-step bookkeeping from step 2 on), total
     timing: dict[str, float] = field(default_factory=dict)
     pruner_macs: float = 0.0  # MACs of the pruner in this call (whole batch)
     token_work: dict[int, float] = field(default_factory=dict)  # branch -> sum of token fractions refreshed
