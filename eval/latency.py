@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -34,46 +33,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, provenance, write_json, parse_args  # noqa: E402
 from common import methods  # noqa: E402
 from common.methods import ROBOT_KINDS, VOCABULARY, parse_method  # noqa: E402
+from common.policy_timing import batch_frames, computed_steps, time_calls  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
-from tts.trajectories import load_trajectories, obs_dict  # noqa: E402
-
-
-def _sync(policy) -> None:
-    if policy.device.type == "cuda":
-        torch.cuda.synchronize(policy.device)
-
-
-def time_calls(policy, frames: list[dict], gen_seed: int) -> list[float]:
-    """reset, untimed frame 0, then the latency of each later frame."""
-    policy.reset()
-    out = []
-    for r, obs in enumerate(frames):
-        g = torch.Generator().manual_seed(gen_seed + r)
-        _sync(policy)
-        t0 = time.perf_counter()
-        policy.predict_action(obs, generator=g)
-        _sync(policy)
-        if r:
-            out.append(time.perf_counter() - t0)
-    return out
-
-
-def batch_frames(policy, episodes: list[dict], n_frames: int) -> list[dict]:
-    """Frames 0..n_frames of a batch of episodes (an episode shorter than that repeats its last frame)."""
-    frames = []
-    for r in range(n_frames + 1):
-        window = torch.as_tensor(np.stack([e["obs"][min(r, len(e["obs"]) - 1)] for e in episodes]))
-        frames.append(obs_dict(policy, window))
-    return frames
-
-
-def computed_steps(summary) -> int:
-    """Steps per sample that compute at least one branch, in the last call that was not an episode's
-    dense first call (rounded mean over the batch)."""
-    call = [c for c in summary.calls if not c.dense][-1]
-    d = call.decisions()  # [K, B, nb]
-    return int(round(float((d == 0).any(-1).float().sum(0).mean())))
+from tts.trajectories import load_trajectories  # noqa: E402
 
 
 def main(argv=None) -> dict:
