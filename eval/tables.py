@@ -9,6 +9,7 @@ in results/robot/ and results/image/, and renders the image sample grids.
 from __future__ import annotations
 
 import json
+import re
 import math
 import sys
 from pathlib import Path
@@ -76,28 +77,48 @@ def summary_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+FEW_STEP = re.compile(r"(ddim|dpm):(\d+)(?::(\w+))?$")
+
+
+def _few_step_key(method: str) -> tuple:
+    """dense first, then DDIM (leading), DDIM trailing, DPM-Solver++, each by number of steps."""
+    if method == "dense":
+        return (0, "", 0)
+    family, k, spacing = FEW_STEP.match(method).groups()
+    return (1 if family == "ddim" else 2, spacing or "", int(k))
+
+
 def steps_table(folder: Path) -> str:
-    """Does the number of denoising steps matter: success of dense DDPM-100 and DDIM-k per policy and
-    split (complete runs; the cell also gives the episodes it pools)."""
+    """Does the number of denoising steps matter: success of dense DDPM-100 and the few-step samplers
+    (DDIM-k, DDIM-k with trailing timesteps, DPM-Solver++-k) per policy and split (complete runs;
+    the cell also gives the episodes it pools), and dense minus the best 3-step sampler."""
     runs: dict[tuple[str, str], list[dict]] = {}
     for path in sorted(folder.glob("*.json")):
         r = json.loads(path.read_text())
         if "success_rate" in r and r["episodes_done"] == r["episodes_requested"] and \
-                (r["method"] == "dense" or r["method"].startswith("ddim:")):
+                (r["method"] == "dense" or FEW_STEP.match(r["method"])):
             runs.setdefault((policy_of(r), r["method"]), []).append(r)
-    ks = sorted({int(m.split(":")[1]) for _, m in runs if m != "dense"})
-    methods = ["dense"] + [f"ddim:{k}" for k in ks]
-    rows = ["| policy | " + " | ".join(f"`{m}`" for m in methods) + " |", "|---|" + "---|" * len(methods)]
+    methods = sorted({m for _, m in runs}, key=_few_step_key)
+    rows = ["| policy | " + " | ".join(f"`{m}`" for m in methods) + " | dense - best 3-step |",
+            "|---|" + "---|" * (len(methods) + 1)]
+
+    def pooled(policy: str, m: str):
+        rs = runs.get((policy, m))
+        if not rs:
+            return None, 0
+        n = sum(r["episodes_done"] for r in rs)
+        return sum(r["success_rate"] * r["episodes_done"] for r in rs) / n, n
+
     for policy in sorted({p for p, _ in runs}):
         cells = []
         for m in methods:
-            rs = runs.get((policy, m))
-            if not rs:
-                cells.append("-")
-                continue
-            n = sum(r["episodes_done"] for r in rs)
-            cells.append(f"{sum(r['success_rate'] * r['episodes_done'] for r in rs) / n:.2f} ({n})")
-        rows.append(f"| {policy} | " + " | ".join(cells) + " |")
+            rate, n = pooled(policy, m)
+            cells.append("-" if rate is None else f"{rate:.2f} ({n})")
+        dense, _ = pooled(policy, "dense")
+        three = [pooled(policy, m)[0] for m in methods if m != "dense" and _few_step_key(m)[2] == 3]
+        three = [x for x in three if x is not None]
+        gap = f"{dense - max(three):+.2f}" if dense is not None and three else "-"
+        rows.append(f"| {policy} | " + " | ".join(cells) + f" | {gap} |")
     return "\n".join(rows) + "\n"
 
 
