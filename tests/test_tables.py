@@ -6,7 +6,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
-from tables import newcombe_paired, paired_vs_dense, sign_test_p  # noqa: E402
+from common.stats import newcombe_paired, paired_vs_dense, sign_test_p  # noqa: E402
 
 
 def run(outcomes: dict[int, bool]) -> dict:
@@ -65,7 +65,7 @@ def test_data_efficiency_keeps_schedules_searched_on_more_calls_apart():
 
 
 def test_runs_of_other_policies_and_validation_seeds_never_pool_with_the_bundled_test_runs():
-    from tables import policy_of
+    from common.stats import policy_of
 
     run = {"task": "lift", "checkpoint": "checkpoints/lift_dpt", "provenance": {"seeds": [100000, 100001]}}
     assert policy_of(run) == "lift"
