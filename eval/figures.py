@@ -6,6 +6,8 @@
         --trajectories data/trajectories/lift.pt          # forward / timestep / rollout feature similarity (Fig 9)
     python eval/figures.py data-efficiency --task lift    # success vs trajectories (Figs 10-11; recipes/data_efficiency.sh,
                                                           # recipes/pruner_data_efficiency.sh)
+    python eval/figures.py frontier --task lift [--checkpoint checkpoints/lift_mh_dpt]
+                                                          # success vs speed-up per batch size (eval/frontier_latency.py)
 
 Masks and similarities use held-out recorded episodes (index >= ``--first-episode``, past the
 pruner's training and validation sets) with the recorded noise seeds.
@@ -23,6 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, parse_args  # noqa: E402
+from common import frontier as frontier_join  # noqa: E402
 from robot_suite.replay import replay  # noqa: E402
 
 import tts  # noqa: E402
@@ -200,9 +203,57 @@ def data_efficiency(args) -> Path:
     return out
 
 
+FAMILY_STYLE = {"ddim": ("#3182bd", "DDIM-k (leading, Diffusion Policy's)"),
+                "ddim-trailing": ("#9ecae1", "DDIM-k (trailing)"), "dpm": ("#31a354", "DPM-Solver++-k")}
+
+
+def frontier(args) -> Path:
+    """One panel per batch size: success (Wilson 95% interval) against speed-up over dense, the
+    fewer-step samplers as lines through their k, dense and every sparse method as points."""
+    plt = _plt()
+    folder = REPO / "results" / "robot"
+    name = args.task if args.checkpoint is None or args.checkpoint.name == f"{args.task}_dpt" else \
+        f"{args.task} ({args.checkpoint.name})"
+    batches = [1, 28]
+    fig, axes = plt.subplots(1, len(batches), figsize=(6.5 * len(batches), 4.6), squeeze=False)
+    for ax, batch in zip(axes[0], batches):
+        points = frontier_join.frontier_points(folder, name, batch)
+        if not points:
+            ax.set_title(f"{name}, batch {batch}: not measured")
+            continue
+        for fam, (color, label) in FAMILY_STYLE.items():
+            line = sorted((p for p in points if p.family == fam), key=lambda p: p.speedup)
+            if line:
+                ax.plot([p.speedup for p in line], [p.success for p in line], "-o", color=color, label=label, ms=4)
+                for p in line:
+                    ax.annotate(p.method.split(":")[1], (p.speedup, p.success), fontsize=7, color=color,
+                                xytext=(3, 3), textcoords="offset points")
+        for p in points:
+            if p.family in FAMILY_STYLE:
+                continue
+            marker, color = ("s", "black") if p.family == "dense" else ("D", "#e6550d")
+            ax.errorbar([p.speedup], [p.success], yerr=[[p.success - p.interval[0]], [p.interval[1] - p.success]],
+                        fmt=marker, color=color, ms=5, capsize=2)
+            ax.annotate(p.method if len(p.method) < 34 else p.method[:32] + "..", (p.speedup, p.success), fontsize=6,
+                        xytext=(4, -9), textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_xlabel("policy-call speed-up over dense DDPM-100 (same process)")
+        ax.set_ylabel("success rate (test episodes)")
+        ax.set_ylim(-0.02, 1.05)
+        ax.set_title(f"{name}, batch {batch}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    slug = name.replace(" (", "-").rstrip(")")
+    out = DOCS / f"frontier_{slug}.png"
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("figure", choices=["masks", "similarity", "data-efficiency"])
+    ap.add_argument("figure", choices=["masks", "similarity", "data-efficiency", "frontier"])
     ap.add_argument("--task", required=True)
     ap.add_argument("--checkpoint", type=Path)
     ap.add_argument("--pruner", type=Path)
@@ -213,7 +264,7 @@ def main(argv=None) -> None:
     ap.add_argument("--calls", type=int, default=6, help="masks: rollout iterations shown")
     args = parse_args(ap, argv)
     DOCS.mkdir(exist_ok=True)
-    fn = {"masks": masks, "similarity": similarity, "data-efficiency": data_efficiency}[args.figure]
+    fn = {"masks": masks, "similarity": similarity, "data-efficiency": data_efficiency, "frontier": frontier}[args.figure]
     print(f"wrote {fn(args)}")
 
 

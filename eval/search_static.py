@@ -29,6 +29,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance, write_json, parse_args  # noqa: E402
+from common.methods import ROBOT_KINDS, parse_method  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 import tts  # noqa: E402
@@ -43,6 +44,11 @@ def policy_calibration(args):
     rng = np.random.default_rng(args.seed)
     pick = rng.choice(len(windows), size=min(args.calls, len(windows)), replace=False)
     policy = load_policy(args.checkpoint)
+    if args.sampler:  # search over the steps of a shorter base sampler (ddim:K[:SPACING], dpm:K)
+        base = parse_method(args.sampler, kinds=ROBOT_KINDS).sampler
+        if base is None:
+            raise SystemExit(f"--sampler takes ddim:K[:SPACING] or dpm:K, got {args.sampler!r}")
+        policy.set_sampler(base.scheduler, base.steps, base.spacing)
 
     def sample():
         return torch.cat([policy.predict_action(obs_dict(policy, torch.as_tensor(windows[pick[s:s + args.batch]])),
@@ -94,6 +100,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--dit", type=Path, default=None, help="a class-conditional DiT instead (tts.adapters.dit.load_dit)")
     ap.add_argument("--steps", type=int, default=50, help="--dit: DDIM steps")
     ap.add_argument("--cfg", type=float, default=1.5, help="--dit: guidance scale")
+    ap.add_argument("--sampler", default=None,
+                    help="policy: the base sampler the schedule is for (ddim:K[:SPACING] or dpm:K; default the "
+                         "policy's DDPM-100); evaluate it as file:SCHEDULE+ddim:K")
     ap.add_argument("--sparsity", type=float, nargs="+", default=[0.93])
     ap.add_argument("--episodes", type=int, default=32, help="calibration episodes (from the start of the file)")
     ap.add_argument("--calls", type=int, default=64, help="calibration policy calls (spread over the episodes)")
@@ -135,6 +144,7 @@ def main(argv=None) -> dict:
             "calibration_episodes": args.episodes, "calibration_calls": args.calls,
             "calibration_calls_used": n_calls,  # --calls, capped by the windows of --episodes
             "sparsity": rho, "realised_sparsity": float((grid != 0).float().mean()),
+            "sampler": args.sampler or "the policy's own",
             "directions": ["timestep"],
             "grid": ["".join("CFTR"[c] for c in row.tolist()) for row in grid], **extra,
         }

@@ -17,6 +17,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, write_atomic  # noqa: E402
 from common.stats import paired_vs_dense, policy_of  # noqa: E402
+from common import frontier  # noqa: E402
 
 
 def robot_table(folder: Path) -> str:
@@ -171,6 +172,31 @@ def reuse_cost_table(folder: Path) -> str:
             rows.append(f"| {r['task']} | `{r['method']}` | {row['batch']} | {row['reference']}: "
                         f"{row['reference_ms']['median']:.1f} | {row['accelerated_ms']['median']:.1f} | "
                         f"**{row['ratio']:.2f}x** | {brk} | {ref} | `{r['provenance']['git_sha'][:10]}` |")
+    return "\n".join(rows) + "\n"
+
+
+def frontier_table(folder: Path) -> str:
+    """Success against speed-up over dense per policy and batch size (eval/common/frontier.py): every
+    method with test-seed runs and a row in frontier_latency_<policy>.json."""
+    rows = ["| policy | batch | method | computed steps | success (episodes) [95% CI] | speed-up vs dense | "
+            "ms per call | on the frontier | sparse: minus the best fewer-step sampler at least as fast (paired 95% CI) |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for path in sorted(folder.glob("frontier_latency_*.json")):
+        doc = json.loads(path.read_text())
+        policy = doc["task"] if doc["policy"] == doc["task"] else f"{doc['task']} ({Path(doc['checkpoint']).name})"
+        for batch in sorted({r["batch"] for r in doc["rows"]}):
+            points = frontier.frontier_points(folder, policy, batch)
+            for p in sorted(points, key=lambda q: -q.speedup):
+                versus = "-"
+                if p.family == "sparse":
+                    vs = frontier.beats_fewer_steps(p, points)
+                    versus = "no fewer-step sampler as fast" if vs is None else (
+                        f"`{vs[0].method}`: {vs[1]:+.3f} ({vs[2]:+.3f}, {vs[3]:+.3f})"
+                        + (" **beats it**" if vs[2] > 0 else ""))
+                steps = "100" if p.method == "dense" else str(p.computed_steps)
+                rows.append(f"| {policy} | {batch} | `{p.method}` | {steps} | {p.success:.2f} ({p.episodes}) "
+                            f"[{p.interval[0]:.2f}, {p.interval[1]:.2f}] | {p.speedup:.2f}x | {p.latency_ms:.1f} | "
+                            f"{'yes' if frontier.on_frontier(p, points) else ''} | {versus} |")
     return "\n".join(rows) + "\n"
 
 
@@ -367,7 +393,7 @@ def main() -> None:
     robot, image = REPO / "results" / "robot", REPO / "results" / "image"
     docs = REPO / "docs" / "results"
     fill(docs / "robot.md", {"robot": summary_table(robot), "latency": latency_table(robot),
-                             "reuse-cost": reuse_cost_table(robot),
+                             "reuse-cost": reuse_cost_table(robot), "frontier": frontier_table(robot),
                              "agreement": agreement_table(robot), "headroom": headroom_table(robot),
                              "rollout-age": rollout_age_table(robot),
                              "runs": robot_table(robot)})

@@ -34,3 +34,72 @@ def test_frontier_latency_rejects_a_method_listed_twice(tmp_path):
     with pytest.raises(SystemExit):
         frontier_latency.main(["--task", "toy", "--checkpoint", "x", "--trajectories", "y", "--methods", "ddim:2",
                                "ddim:2"])
+
+
+def _run(folder, method, successes, seed=100000, task="lift"):
+    eps = [{"seed": seed + i, "success": bool(s)} for i, s in enumerate(successes)]
+    doc = {"task": task, "checkpoint": f"checkpoints/{task}_dpt", "method": method, "episodes_requested": len(eps),
+           "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
+           "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps}
+    (folder / f"{task}_{method.replace(':', '-')}_{seed}.json").write_text(json.dumps(doc))
+
+
+def test_frontier_join_dominance_and_the_fewer_steps_verdict(tmp_path):
+    from common import frontier
+
+    n = 60
+    _run(tmp_path, "dense", [1] * n)
+    _run(tmp_path, "ddim:2", [1] * 30 + [0] * 30)  # fastest, poor
+    _run(tmp_path, "ddim:5", [1] * 45 + [0] * 15)
+    _run(tmp_path, "uniform:0.9:timestep", [1] * 58 + [0] * 2)  # as fast as ddim:5, much better
+    _run(tmp_path, "uniform:0.8:timestep", [1] * 40 + [0] * 20)  # slower than ddim:5 and worse: dominated
+    _run(tmp_path, "ddim:5", [1] * 10, seed=400000)  # a validation run never pools with the test runs
+    rows = [{"method": m, "batch": 1, "latency_ms": 1000 / s, "speedup": s, "dense_ms": 1000.0, "computed_steps": c}
+            for m, s, c in (("ddim:2", 40.0, 2), ("ddim:5", 18.0, 5), ("uniform:0.9:timestep", 18.0, 10),
+                            ("uniform:0.8:timestep", 9.0, 20))]
+    (tmp_path / "frontier_latency_lift.json").write_text(json.dumps({"rows": rows}))
+    pts = {p.method: p for p in frontier.frontier_points(tmp_path, "lift", 1)}
+    assert set(pts) == {"dense", "ddim:2", "ddim:5", "uniform:0.9:timestep", "uniform:0.8:timestep"}
+    assert pts["ddim:5"].episodes == n and pts["dense"].speedup == 1.0
+    on = {m for m, p in pts.items() if frontier.on_frontier(p, list(pts.values()))}
+    assert on == {"dense", "ddim:2", "uniform:0.9:timestep"}
+    best, diff, lo, hi = frontier.beats_fewer_steps(pts["uniform:0.9:timestep"], list(pts.values()))
+    assert best.method == "ddim:5" and diff == pytest.approx(13 / 60) and lo > 0
+    best, diff, lo, _ = frontier.beats_fewer_steps(pts["uniform:0.8:timestep"], list(pts.values()))
+    assert best.method == "ddim:5" and diff < 0 and lo < 0
+    assert frontier.frontier_points(tmp_path, "lift", 28) == []
+    assert [frontier.family(m) for m in ("dense", "ddim:3", "ddim:3:trailing", "dpm:2", "file:x+ddim:20")] == \
+        ["dense", "ddim", "ddim-trailing", "dpm", "sparse"]
+
+
+def test_searched_steps_on_a_shorter_base_sampler(tmp_path):
+    """eval/search_static.py --sampler ddim:4: the schedule has the base's 4 steps, and it runs as
+    file:SCHEDULE+ddim:4 (a file made for the policy's own 6 steps says it does not fit)."""
+    import search_static
+    import torch
+
+    from common.methods import ROBOT_KINDS, install_policy, parse_method
+    from test_robot_pipeline import obs_batch
+    from tts.adapters.dp_policy import load_policy
+
+    _toy_policy_and_trajectories(tmp_path, [3, 4])
+    out = tmp_path / "steps.json"
+    search_static.main(["--checkpoint", str(tmp_path / "policy"), "--trajectories", str(tmp_path / "traj.pt"),
+                        "--sampler", "ddim:4", "--sparsity", "0.5", "--objective", "output", "--calls", "4",
+                        "--shifts", "1", "--sweeps", "1", "--out", str(out)])
+    doc = json.loads(out.read_text())
+    assert len(doc["grid"]) == 4 and doc["sampler"] == "ddim:4"
+    assert sum(set(row) == {"C"} for row in doc["grid"]) == 2
+    pol = load_policy(tmp_path / "policy")
+    with install_policy(pol, parse_method(f"file:{out}+ddim:4", kinds=ROBOT_KINDS)) as acc:
+        pol.predict_action(obs_batch(2), torch.Generator().manual_seed(0))
+        assert len(acc.summary().calls[-1].steps) == 4
+    pol.set_sampler("ddpm", 6)
+    with install_policy(pol, parse_method(f"file:{out}", kinds=ROBOT_KINDS)):
+        with pytest.raises(IndexError, match="only has 4 steps"):
+            pol.predict_action(obs_batch(2))
+    pol.set_sampler("ddim", 3)  # a loop shorter than the schedule: not silent either
+    with install_policy(pol, parse_method(f"file:{out}", kinds=ROBOT_KINDS)) as acc:
+        pol.predict_action(obs_batch(2))
+        with pytest.warns(UserWarning, match="made for 4 denoising steps but a sampling call ran 3"):
+            acc.summary()

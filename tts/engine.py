@@ -13,6 +13,7 @@ from __future__ import annotations
 import fnmatch
 import functools
 import time
+import warnings
 from typing import Any, Callable, Hashable, Mapping, Optional, Sequence, Union
 
 import torch
@@ -122,6 +123,7 @@ class Accelerator:
         self._profile_key: Optional[tuple] = None
         self._timing: dict[str, float] = {}  # of the call about to start (condition encoder)
         self._observed = False  # the plan has seen the condition memory of the call about to start
+        self._warned_length = False
         # the condition memory from the denoiser's step-0 inputs, for loops that encode no condition up front
         self._condition_of = target.condition_of if plan.reads_condition else None
 
@@ -282,6 +284,7 @@ class Accelerator:
 
     def summary(self) -> Summary:
         """Decisions, realised sparsity and MACs of the recorded calls."""
+        self._check_call_length()
         return Summary(
             branch_names=list(self.branch_names),
             calls=list(self.calls),
@@ -332,6 +335,7 @@ class Accelerator:
         """Step 0 of a new sampling call: fresh per-call caches, the plan told, a new record."""
         tracker = self.tracker
         batch, dense = tracker.batch, tracker.dense_call
+        self._check_call_length()
         self.cache.begin_call()
         if dense:
             self.cache.new_episode()
@@ -351,6 +355,19 @@ class Accelerator:
             record.pruner_macs = self.plan.macs_per_sample * batch
         self.calls.append(record)
         self.executor.begin_call(record, batch, _first_device(args, kwargs), dense)
+
+    def _check_call_length(self) -> None:
+        """Warn (once) when the call that just ended ran fewer steps than the plan was made for: a
+        schedule or pruner made for another sampler would otherwise apply only its first rows."""
+        want = self.plan.num_steps
+        if want is None or not self.calls or self._warned_length:
+            return
+        ran = len(self.calls[-1].steps)
+        if ran < want:
+            self._warned_length = True
+            warnings.warn(f"{self.plan.describe()} was made for {want} denoising steps but a sampling call ran {ran}: "
+                          "only its first rows applied (run the sampler it was made for, e.g. file:S+ddim:K)",
+                          stacklevel=4)
 
     def _maybe_profile(self, orig: Callable, args: tuple, kwargs: dict, batch: int) -> None:
         """Count MACs per branch once per input-shape signature, in a separate dense dry run.

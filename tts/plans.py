@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from types import MappingProxyType
-from typing import Iterable, Mapping, Sequence, Union
+from typing import Iterable, Mapping, Optional, Sequence, Union
 
 import torch
 
@@ -109,6 +109,9 @@ class Plan:
     timing: Mapping[str, float] = MappingProxyType({})
     #: MACs the plan itself spends per sample and call (a learned pruner); 0 for static plans
     macs_per_sample: float = 0.0
+    #: the number of denoising steps the plan was made for (None: any); a call that runs fewer is
+    #: reported (a call that runs more raises at the first step the plan lacks)
+    num_steps: Optional[int] = None
 
     def bind(self, num_branches: int, branch_kinds: Sequence[str]) -> None:
         """Called once by the engine with the model's branch layout."""
@@ -291,6 +294,7 @@ class TensorPlan(Plan):
             raise ValueError("decision codes must be in 0..3 (compute, forward, timestep, rollout)")
         self.decisions = t.to(torch.int8).cpu().contiguous()
         self.uses = frozenset(int(c) for c in torch.unique(self.decisions).tolist())
+        self.num_steps = int(self.decisions.shape[1])
 
     def bind(self, num_branches: int, branch_kinds: Sequence[str]) -> None:
         super().bind(num_branches, branch_kinds)

@@ -263,6 +263,7 @@ class PrunerPlan(Plan):
         self._whole_steps = bool(getattr(pruner.config, "tie_branches", False))  # budget counts whole steps
         self.uses = frozenset(self.codes)
         self.soft = mode == "ste"
+        self.num_steps = pruner.config.steps or None
         self._pending: Optional[threading.Thread] = None
         self._gpu: Optional[tuple] = None  # (pinned host decisions, start event, done event)
         self._observed = False  # observe() ran for the call about to start
@@ -297,6 +298,10 @@ class PrunerPlan(Plan):
         self.timing = {"pruner": 0.0, "wait": 0.0}
         self._result, self._error, self.gates, self._gpu = None, None, None, None
         self._observed = True
+        trained = self.pruner.config.steps
+        if trained and memory.shape[1] != trained:
+            raise ValueError(f"pruner was trained for {trained} steps, the sampler runs {memory.shape[1]}: train one "
+                             "for this sampler (eval/train_pruner.py on trajectories of the same base)")
         key = tuple(memory.shape[1:])
         if key != self._macs_key:
             self._macs_key = key

@@ -1,0 +1,104 @@
+"""Success against policy-call speed: the frontier of every method of a policy (eval/tables.py,
+eval/figures.py).
+
+Success comes from eval/robot.py runs on the test seeds (validation runs never pool), pooled per
+method; speed is the method's speed-up over dense in eval/frontier_latency.py, where every method
+was timed against the same dense reference in one process. A point is on the frontier when no other
+point is at least as fast and at least as successful (one of them strictly). A sparse method beats
+fewer steps when its success is significantly higher (paired 95% interval above zero, on the same
+episodes) than the best fewer-step sampler that is at least as fast.
+"""
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+from .stats import newcombe_paired, paired_counts, policy_of, wilson
+
+__all__ = ["Point", "family", "frontier_points", "on_frontier", "beats_fewer_steps"]
+
+_FEW = re.compile(r"(ddim|dpm):(\d+)(?::(\w+))?$")
+
+
+def family(method: str) -> str:
+    """dense | ddim | ddim-trailing | dpm (fewer-step samplers) | sparse (every engine method)."""
+    if method == "dense":
+        return "dense"
+    m = _FEW.match(method)
+    if m:
+        return m.group(1) + (f"-{m.group(3)}" if m.group(3) else "")
+    return "sparse"
+
+
+@dataclass
+class Point:
+    """One method of one policy at one batch size."""
+
+    method: str
+    success: float
+    episodes: int
+    interval: tuple[float, float]
+    speedup: float
+    latency_ms: float
+    computed_steps: int
+    runs: list[dict] = field(repr=False, default_factory=list)
+
+    @property
+    def family(self) -> str:
+        return family(self.method)
+
+
+def _success_runs(folder: Path, policy: str) -> dict[str, list[dict]]:
+    runs: dict[str, list[dict]] = {}
+    for path in sorted(folder.glob("*.json")):
+        if path.name.startswith(("frontier_latency_", "latency_")):
+            continue
+        r = json.loads(path.read_text())
+        if "success_rate" in r and r["episodes_done"] == r["episodes_requested"] and policy_of(r) == policy:
+            runs.setdefault(r["method"], []).append(r)
+    return runs
+
+
+def frontier_points(folder: Path, policy: str, batch: int) -> list[Point]:
+    """The methods of ``policy`` (as :func:`policy_of` names it) with both test-seed success runs and a
+    latency row at ``batch`` in ``frontier_latency_<policy>.json``; dense included (speed-up 1)."""
+    slug = policy.replace(" (", "-").rstrip(")")
+    lat_path = folder / f"frontier_latency_{slug}.json"
+    if not lat_path.exists():
+        return []
+    rows = {r["method"]: r for r in json.loads(lat_path.read_text())["rows"] if r["batch"] == batch}
+    if not rows:
+        return []
+    dense_ms = next(iter(rows.values()))["dense_ms"]
+    rows["dense"] = {"latency_ms": dense_ms, "speedup": 1.0, "computed_steps": -1}
+    points = []
+    for method, rs in _success_runs(folder, policy).items():
+        lat = rows.get(method)
+        if lat is None:
+            continue
+        n = sum(r["episodes_done"] for r in rs)
+        k = round(sum(r["success_rate"] * r["episodes_done"] for r in rs))
+        points.append(Point(method, k / n, n, wilson(k, n), lat["speedup"], lat["latency_ms"],
+                            lat["computed_steps"], rs))
+    return sorted(points, key=lambda p: p.speedup)
+
+
+def on_frontier(p: Point, points: list[Point]) -> bool:
+    """No other point is at least as fast and as successful, and strictly better in one of them."""
+    return not any(q is not p and q.speedup >= p.speedup and q.success >= p.success
+                   and (q.speedup > p.speedup or q.success > p.success) for q in points)
+
+
+def beats_fewer_steps(p: Point, points: list[Point]) -> Optional[tuple[Point, float, float, float]]:
+    """The best fewer-step sampler at least as fast as ``p`` and the paired difference p - it with its
+    95% interval, or None when no such sampler was run. ``p`` beats fewer steps when the lower bound
+    is above zero."""
+    rivals = [q for q in points if q.family in ("ddim", "ddim-trailing", "dpm") and q.speedup >= p.speedup]
+    if not rivals:
+        return None
+    best = max(rivals, key=lambda q: (q.success, q.speedup))
+    diff, lo, hi = newcombe_paired(*paired_counts(p.runs, best.runs))
+    return best, diff, lo, hi
