@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# The robot frontier: success against policy-call latency for TASK=lift (default) or can (or a policy
+# given by CKPT, with TRAJ its recorded trajectories), every method on the same test episodes (SEEDS,
+# default 3 x 50) and timed against one dense reference in one process (eval/frontier_latency.py,
+# batch 1 and 28). Methods: dense DDPM-100; DDIM-k (k = 2 3 4 5 7 10 16), trailing DDIM-k (2 3 5),
+# DPM-Solver++-k (2 3 5 7); searched whole steps at 90-98% on DDPM-100; the TTS step pruner served at
+# those budgets; TTS on DDIM-20 and DDIM-10 bases at 7 computed steps (uniform and searched); the
+# BAC-style schedule, uniform and FORA-interval timestep reuse at 93%. Resumable; a full run is
+# several hours on 2 CPU cores (PARTS=success,latency,figures picks stages). Then python eval/tables.py
+set -euo pipefail
+source "$(dirname "$0")/lib.sh"
+ckpt=${CKPT:-}
+traj=${TRAJ:-}
+robot_task "${TASK:-lift}"
+CKPT=${ckpt:-$CKPT}
+TRAJ=${traj:-$TRAJ}
+bundled=$([ "$CKPT" = "checkpoints/${TASK}_dpt" ] && echo 1 || echo "")
+policy=$TASK
+[ -n "$bundled" ] || policy=${TASK}-$(basename "$CKPT")
+sched=results/schedules/${policy}  # schedules and pruners belong to one policy
+have() {  # a file: method runs only where its schedule was made
+  local m=${1#file:}
+  [[ $1 != file:* ]] || [ -f "${m%%+*}" ]
+}
+methods=(dense)
+for k in 2 3 4 5 7 10 16; do methods+=("ddim:$k"); done
+for k in 2 3 5; do methods+=("ddim:$k:trailing"); done
+for k in 2 3 5 7; do methods+=("dpm:$k"); done
+for rho in 0.9 0.93 0.95 0.97 0.98; do
+  search_steps "${sched}_steps_${rho}.json" "$rho"
+  methods+=("file:${sched}_steps_${rho}.json")
+  if [ -n "$bundled" ] && [ -f "checkpoints/pruners/${TASK}_tts_0.93.json" ]; then
+    methods+=("pruner:checkpoints/pruners/${TASK}_tts_0.93@${rho}")
+  fi
+done
+search_steps "${sched}_steps_ddim20_0.65.json" 0.65 --sampler ddim:20
+search_steps "${sched}_steps_ddim10_0.3.json" 0.3 --sampler ddim:10
+methods+=("uniform:0.65:timestep+ddim:20" "file:${sched}_steps_ddim20_0.65.json+ddim:20"
+          "uniform:0.3:timestep+ddim:10" "file:${sched}_steps_ddim10_0.3.json+ddim:10"
+          "file:${sched}_bac_0.93.json" "uniform:0.93:timestep" "every_n:14:timestep")
+parts=${PARTS:-success,latency,figures}
+if [[ $parts == *success* ]]; then
+  for m in "${methods[@]}"; do
+    have "$m" || continue
+    evaluate --method "$m"
+  done
+fi
+if [[ $parts == *latency* ]]; then
+  python eval/frontier_latency.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" --batch 1 28 \
+      --trials "${TRIALS:-3}" --threads "${THREADS:-2}" --resume \
+      --methods $(for m in "${methods[@]:1}"; do have "$m" && echo "$m"; done)
+fi
+if [[ $parts == *figures* ]]; then
+  python eval/figures.py frontier --task "$TASK" --checkpoint "$CKPT"
+fi
+python eval/tables.py
