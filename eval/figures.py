@@ -37,6 +37,13 @@ DOCS = REPO / "docs"
 COLORS = ["#1b1b1b", "#e6550d", "#3182bd", "#31a354"]  # compute, forward, timestep, rollout
 
 
+def _policy_slug(args) -> str:
+    """``task`` for the bundled ``checkpoints/<task>_dpt``, else ``task-<checkpoint name>`` (figures of
+    different policies never overwrite each other)."""
+    name = Path(args.checkpoint).name if args.checkpoint is not None else f"{args.task}_dpt"
+    return args.task if name == f"{args.task}_dpt" else f"{args.task}-{name}"
+
+
 def _plt():
     import matplotlib
 
@@ -74,7 +81,7 @@ def masks(args) -> Path:
     fig.suptitle(f"{args.task}: pruner decisions per rollout iteration ({Path(args.pruner).name}, {mode}; "
                  f"held-out episode seed {ep['seed']})", fontsize=9)
     fig.tight_layout(rect=(0, 0.06, 1, 0.95))
-    out = DOCS / f"{args.task}_pruning_masks.png"
+    out = DOCS / f"{_policy_slug(args)}_pruning_masks.png"
     fig.savefig(out, dpi=110)
     return out
 
@@ -124,7 +131,7 @@ def similarity(args) -> Path:
     fig.suptitle(f"{args.task}: cosine similarity of branch outputs with what each direction would reuse "
                  f"({len(eps)} held-out episodes x {n_frames} calls, dense policy)", fontsize=9)
     fig.tight_layout()
-    out = DOCS / f"{args.task}_feature_similarity.png"
+    out = DOCS / f"{_policy_slug(args)}_feature_similarity.png"
     fig.savefig(out, dpi=110)
     return out
 
@@ -244,8 +251,7 @@ def frontier(args) -> Path:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
-    slug = name.replace(" (", "-").rstrip(")")
-    out = DOCS / f"frontier_{slug}.png"
+    out = DOCS / f"frontier_{_policy_slug(args)}.png"
     fig.savefig(out, dpi=120)
     plt.close(fig)
     return out

@@ -175,6 +175,44 @@ def reuse_cost_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+TABLE7_ROWS = (("dense", "dense"), ("DDIM-7 (leading)", "ddim:7"), ("DDIM-3 (leading)", "ddim:3"),
+               ("DDIM-3 (trailing)", "ddim:3:trailing"), ("DPM-Solver++-3", "dpm:3"),
+               ("searched static steps", "file:{p}_steps_0.93"),
+               ("forward only (pruner, scratch)", "pruner:{p}_reference_forward_0.93"),
+               ("timestep only (pruner, scratch)", "pruner:{p}_reference_timestep_0.93"),
+               ("rollout only (pruner, scratch)", "pruner:{p}_reference_rollout_0.93"),
+               ("omni (pruner, scratch)", "pruner:{p}_reference_forward-timestep-rollout_0.93"),
+               ("omni (pruner, from the searched prior)", "pruner:{p}_reference_prior_0.93"))
+
+
+def table7(folder: Path) -> str:
+    """The paper's Table 7 shape at 93% (recipes/table7.sh): per policy with reference-recipe pruners,
+    success on the test seeds and the paired difference to dense on the same episodes."""
+    runs: dict[tuple[str, str], list[dict]] = {}
+    for path in sorted(folder.glob("*.json")):
+        r = json.loads(path.read_text())
+        if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
+            runs.setdefault((policy_of(r), r["method"]), []).append(r)
+    policies = sorted({pol for pol, m in runs if "_reference_" in m and not pol.endswith("validation")})
+    if not policies:
+        return "No policy has reference-recipe pruner runs yet (recipes/table7.sh).\n"
+    rows = ["| row | " + " | ".join(policies) + " |", "|---|" + "---|" * len(policies)]
+    for label, pattern in TABLE7_ROWS:
+        cells = []
+        for pol in policies:
+            slug = pol.replace(" (", "-").rstrip(")")
+            rs = runs.get((pol, pattern.format(p=slug)))
+            if not rs:
+                cells.append("-")
+                continue
+            n = sum(r["episodes_done"] for r in rs)
+            rate = sum(r["success_rate"] * r["episodes_done"] for r in rs) / n
+            paired = "" if pattern == "dense" else "; " + paired_vs_dense(rs, runs.get((pol, "dense"), [])).split(" on ")[0]
+            cells.append(f"{rate:.2f} ({n}){paired}")
+        rows.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(rows) + "\n"
+
+
 def frontier_table(folder: Path) -> str:
     """Success against speed-up over dense per policy and batch size (eval/common/frontier.py): every
     method with test-seed runs and a row in frontier_latency_<policy>.json."""
@@ -397,7 +435,7 @@ def main() -> None:
                              "agreement": agreement_table(robot), "headroom": headroom_table(robot),
                              "rollout-age": rollout_age_table(robot),
                              "runs": robot_table(robot)})
-    fill(docs / "testbed.md", {"steps": steps_table(robot), "operators": operators_table(REPO / "results" / "experts")})
+    fill(docs / "testbed.md", {"steps": steps_table(robot), "table7": table7(robot), "operators": operators_table(REPO / "results" / "experts")})
     readme = {"headline-robot": headline_robot(robot)}
     if any(image.glob("digits_*.json")):
         sample_grids(image)

@@ -71,3 +71,30 @@ def test_runs_of_other_policies_and_validation_seeds_never_pool_with_the_bundled
     assert policy_of(run) == "lift"
     assert policy_of({**run, "checkpoint": "checkpoints/lift_mh_dpt"}) == "lift (lift_mh_dpt)"
     assert policy_of({**run, "provenance": {"seeds": [400000]}}) == "lift, validation"
+
+
+def test_table7_rows_pool_test_seeds_per_policy_and_skip_validation(tmp_path):
+    import json
+
+    import tables
+
+    def write(method, successes, seed, ckpt="checkpoints/lift_mh_dpt"):
+        eps = [{"seed": seed + i, "success": bool(x)} for i, x in enumerate(successes)]
+        doc = {"task": "lift", "checkpoint": ckpt, "method": method, "episodes_requested": len(eps),
+               "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
+               "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps}
+        (tmp_path / f"{method.replace(':', '-')}_{seed}.json").write_text(json.dumps(doc))
+
+    assert "No policy" in tables.table7(tmp_path)
+    write("dense", [1, 1, 1, 0], 100000)
+    write("pruner:lift-lift_mh_dpt_reference_rollout_0.93", [1, 0, 1, 0], 100000)
+    write("pruner:lift-lift_mh_dpt_reference_rollout_0.93", [1, 1], 400000)  # validation: not pooled
+    write("file:lift-lift_mh_dpt_steps_0.93", [1, 1, 1, 1], 100000)
+    text = tables.table7(tmp_path)
+    header, _, *rows = text.strip().splitlines()
+    assert header == "| row | lift (lift_mh_dpt) |"
+    row = {r.split(" | ")[0][2:]: r.split(" | ")[1].rstrip(" |") for r in rows}
+    assert row["dense"] == "0.75 (4)"
+    assert row["rollout only (pruner, scratch)"].startswith("0.50 (4); -0.250 (")
+    assert row["searched static steps"].startswith("1.00 (4); +0.250 (")
+    assert row["omni (pruner, scratch)"] == "-"
