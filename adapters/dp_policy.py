@@ -27,6 +27,8 @@ from .diffusion_policy import _adapt as _adapt_model
 from .schedulers import fast_step_for
 
 Generators = Union[None, torch.Generator, Sequence[torch.Generator]]
+LOWDIM_FORMAT = "tts-dp-lowdim-v1"
+HYBRID_FORMAT = "tts-dp-hybrid-image-v1"
 
 __all__ = ["SCHEDULERS", "SPACINGS", "Normalizer", "PolicyConfig", "DiffusionTransformerLowdimPolicy", "load_policy", "save_policy"]
 
@@ -159,12 +161,17 @@ class DiffusionTransformerLowdimPolicy(nn.Module):
         with torch.set_grad_enabled(enable_grad):
             return self._predict(obs, generator)
 
+    def condition(self, obs: dict[str, Any]) -> torch.Tensor:
+        """The transformer's condition [B, n_obs_steps, cond_dim] of one call: the normalised
+        observation vectors of the last ``n_obs_steps`` frames (image policies encode here, once)."""
+        nobs = self.obs_normalizer.normalize(self.obs_vector(obs))
+        if nobs.dim() != 3 or nobs.shape[1] < self.cfg.n_obs_steps:
+            raise ValueError(f"observations must be [B, >= {self.cfg.n_obs_steps}, dim], got {tuple(nobs.shape)}")
+        return nobs[:, -self.cfg.n_obs_steps:]
+
     def _predict(self, obs: dict[str, Any], generator: Generators) -> dict[str, torch.Tensor]:
         cfg = self.cfg
-        nobs = self.obs_normalizer.normalize(self.obs_vector(obs))
-        if nobs.dim() != 3 or nobs.shape[1] < cfg.n_obs_steps:
-            raise ValueError(f"observations must be [B, >= {cfg.n_obs_steps}, dim], got {tuple(nobs.shape)}")
-        cond = nobs[:, -cfg.n_obs_steps:]
+        cond = self.condition(obs)
         B = cond.shape[0]
         if isinstance(generator, (list, tuple)) and len(generator) != B:
             raise ValueError(f"got {len(generator)} generators for a batch of {B}")
@@ -202,11 +209,15 @@ def save_policy(policy: DiffusionTransformerLowdimPolicy, path: Path, metadata: 
     from safetensors.torch import save_file
 
     weights, meta_path = checkpoint_pair(path)
-    state = {k: (v.to(dtype) if k.startswith("model.") and v.is_floating_point() else v).contiguous()
+    state = {k: (v.to(dtype) if k.startswith(("model.", "obs_encoder.")) and v.is_floating_point() else v).contiguous()
              for k, v in policy.state_dict().items()}
     with atomic_path(weights) as tmp:
         save_file(state, str(tmp))
-    meta = {"format": "tts-dp-lowdim-v1", "config": asdict(policy.cfg), "metadata": metadata or {}}
+    image_cfg = getattr(policy, "image_cfg", None)
+    meta = {"format": HYBRID_FORMAT if image_cfg is not None else LOWDIM_FORMAT, "config": asdict(policy.cfg),
+            "metadata": metadata or {}}
+    if image_cfg is not None:
+        meta["image_encoder"] = asdict(image_cfg)
     with atomic_path(meta_path) as tmp:
         tmp.write_text(json.dumps(meta, indent=2))
 
@@ -258,9 +269,15 @@ def load_policy(path: Path, trust_pickle: bool = False) -> DiffusionTransformerL
         if not p.exists():
             raise FileNotFoundError(f"{p} not found (a tts policy is a .safetensors + .json pair)")
     meta = json.loads(meta_path.read_text())
-    if meta.get("format") != "tts-dp-lowdim-v1":
+    if meta.get("format") == LOWDIM_FORMAT:
+        policy = DiffusionTransformerLowdimPolicy(PolicyConfig(**meta["config"]))
+    elif meta.get("format") == HYBRID_FORMAT:
+        from .dp_image_policy import DiffusionTransformerHybridImagePolicy, ImageEncoderConfig
+
+        policy = DiffusionTransformerHybridImagePolicy(PolicyConfig(**meta["config"]),
+                                                       ImageEncoderConfig(**meta["image_encoder"]))
+    else:
         raise ValueError(f"{meta_path}: unknown format {meta.get('format')!r}")
-    policy = DiffusionTransformerLowdimPolicy(PolicyConfig(**meta["config"]))
     state = {k: v.float() if v.is_floating_point() else v for k, v in load_file(str(weights)).items()}
     missing, unexpected = policy.load_state_dict(state, strict=False)
     if missing or unexpected:
@@ -304,6 +321,9 @@ def _adapt(policy: Any) -> Optional[Target]:
     target.boundaries = [(policy, "predict_action")]
     target.episode_resets = [(policy, "reset")] if callable(getattr(policy, "reset", None)) else []
     target.description = f"Diffusion Policy ({type(policy).__name__})"
+    encoder = getattr(policy, "obs_encoder", None)
+    if isinstance(encoder, nn.Module):  # an image encoder, run once per call before the loop: timed
+        target.timers = [(encoder, "forward", "image_encoder")]
     if target.condition is None and has_condition_encoder(model):
         if _policy_scheduler(policy) is not None:
             target.condition_of = _condition_from_inputs(policy, model)

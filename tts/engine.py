@@ -223,7 +223,7 @@ class Accelerator:
             def call(*args, **kwargs):
                 t0 = time.perf_counter()
                 memory = orig(*args, **kwargs)
-                self._timing = {"encoder": time.perf_counter() - t0}
+                self._timing["encoder"] = time.perf_counter() - t0
                 if self.plan.reads_condition and not self.removed:
                     self.plan.observe(memory, dense=self.tracker.episode_dense)
                     self._observed = True
@@ -240,6 +240,19 @@ class Accelerator:
                 "Target.condition (the function that encodes the condition for all steps)"
                 + (f": {self.target.condition_note}" if self.target.condition_note else "")
             )
+
+        def make_timer(orig, key):
+            def call(*args, **kwargs):
+                t0 = time.perf_counter()
+                try:
+                    return orig(*args, **kwargs)
+                finally:
+                    self._timing[key] = self._timing.get(key, 0.0) + time.perf_counter() - t0
+
+            return call
+
+        for obj, name, key in self.target.timers:
+            self._patches.patch(obj, name, functools.partial(make_timer, key=key))
 
         def make_reset(orig):
             def call(*args, **kwargs):
@@ -342,7 +355,7 @@ class Accelerator:
         if self._condition_of is not None and not self._observed:
             t0 = time.perf_counter()
             memory = self._condition_of(args, kwargs)
-            self._timing = {"encoder": time.perf_counter() - t0}
+            self._timing["encoder"] = time.perf_counter() - t0
             self.plan.observe(memory, dense=dense)
         self._observed = False
         self.plan.begin_call(self.calls_started, batch)

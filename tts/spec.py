@@ -142,6 +142,8 @@ class Target:
         these arguments when the whole chain of blocks is replaced by adding ``delta`` to the stream
         that enters the first block (what the blocks of a fused step amount to). A fused step then
         runs only the model's input embedding and output head, none of its block machinery.
+    timers: (object, method name, key) of work a sampling call does before its denoising loop (an
+        image encoder): the seconds spent in each go into that call's ``timing[key]``.
     """
 
     denoiser: nn.Module
@@ -157,6 +159,7 @@ class Target:
     description: str = ""
     chain: bool = False
     skip_blocks: Optional[Callable[[tuple, dict, Any], Any]] = None
+    timers: list[tuple[Any, str, str]] = field(default_factory=list)
 
 
 BlockMatcher = Callable[[nn.Module], Optional[BlockSpec]]

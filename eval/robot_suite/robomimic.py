@@ -5,7 +5,8 @@ Layout::
 
     data/                      attrs: total (int), env_args (JSON: env_name, type, env_kwargs)
       demo_0/                  attrs: num_samples
-        obs/<key>              [T, ...] float
+        obs/<key>              [T, ...] float; camera frames (``agentview_image``, ...) [T, H, W, 3]
+                               uint8, gzip-compressed one frame per chunk
         actions                [T, action_dim]
         rewards, dones         [T]
         states                 [T, state_dim] (optional: MuJoCo flattened states)
@@ -50,7 +51,12 @@ def write_demos(path: Path, demos: Iterable[Demo], env_args: dict, masks: Option
         for i, demo in enumerate(demos):
             g = data.create_group(f"demo_{i}")
             for k, v in demo.obs.items():
-                g.create_dataset(f"obs/{k}", data=np.asarray(v))
+                v = np.asarray(v)
+                if v.dtype == np.uint8 and v.ndim == 4:  # camera frames [T, H, W, 3]: one chunk per frame
+                    g.create_dataset(f"obs/{k}", data=v, chunks=(1, *v.shape[1:]), compression="gzip",
+                                     compression_opts=4)
+                else:
+                    g.create_dataset(f"obs/{k}", data=v)
             g.create_dataset("actions", data=np.asarray(demo.actions, dtype=np.float64))
             g.create_dataset("rewards", data=np.asarray(demo.rewards, dtype=np.float64))
             g.create_dataset("dones", data=np.asarray(demo.dones, dtype=np.int64))

@@ -1,0 +1,115 @@
+"""The image-observation DP-T: encoder shapes, the encoder hoisted out of the denoising loop (once
+per policy call, also when accelerated), exactness of an all-compute plan, checkpoints, and the
+robomimic image hdf5 layout."""
+import numpy as np
+import pytest
+import torch
+
+import tts
+from test_robot_pipeline import OBS_DIMS
+from tts.adapters.dp_image_policy import (DiffusionTransformerHybridImagePolicy, ImageEncoderConfig, ObsEncoder,
+                                          SpatialSoftmax)
+from tts.adapters.dp_policy import PolicyConfig, load_policy, save_policy
+
+from conftest import randomize
+
+CAMS = ("agentview_image", "robot0_eye_in_hand_image")
+IMG = ImageEncoderConfig(cameras=CAMS, image_size=32, crop_size=24, num_kp=4, feature_dim=8, width=16)
+
+
+def image_policy(steps: int = 6) -> DiffusionTransformerHybridImagePolicy:
+    cond = IMG.features + sum(OBS_DIMS.values())
+    cfg = PolicyConfig(model=dict(input_dim=7, output_dim=7, horizon=10, n_obs_steps=2, cond_dim=cond, n_layer=2,
+                                  n_head=2, n_emb=32, p_drop_emb=0.0, p_drop_attn=0.1, causal_attn=True,
+                                  obs_as_cond=True),
+                       obs_keys=list(OBS_DIMS), obs_dims=list(OBS_DIMS.values()), action_dim=7,
+                       num_inference_steps=steps)
+    pol = DiffusionTransformerHybridImagePolicy(cfg, IMG)
+    randomize(pol.model, 0)
+    pol.obs_normalizer.fit(torch.randn(50, sum(OBS_DIMS.values())) * 3 + 1)
+    pol.action_normalizer.fit(torch.rand(50, 7) * 2 - 1)
+    return pol.eval()
+
+
+def image_obs(b: int, seed: int = 0, frames: int = 2) -> dict:
+    g = np.random.default_rng(seed)
+    obs = {k: g.normal(size=(b, frames, d)).astype(np.float32) for k, d in OBS_DIMS.items()}
+    for cam in CAMS:
+        obs[cam] = g.integers(0, 256, size=(b, frames, 32, 32, 3), dtype=np.uint8)
+    return obs
+
+
+def test_encoder_shapes_keypoints_and_crops():
+    enc = ObsEncoder(IMG)
+    imgs = {cam: torch.randint(0, 256, (5, 32, 32, 3), dtype=torch.uint8) for cam in CAMS}
+    assert enc.eval()(imgs).shape == (5, 2 * 8)
+    x = torch.rand(5, 3, 32, 32)
+    centre = enc.crop(x)
+    assert centre.shape == (5, 3, 24, 24) and torch.equal(centre, x[..., 4:28, 4:28])
+    enc.train()
+    torch.manual_seed(0)
+    crops = enc.crop(x)
+    assert crops.shape == (5, 3, 24, 24) and not torch.equal(crops, centre)
+    kp = SpatialSoftmax(16, 3, 3, num_kp=4)(torch.randn(2, 16, 3, 3))
+    assert kp.shape == (2, 8) and kp.abs().max() <= 1
+    with pytest.raises(ValueError, match="expected \\[N, H, W, 3\\]"):
+        enc({cam: torch.zeros(2, 3, 32, 32, dtype=torch.uint8) for cam in CAMS})
+    with pytest.raises(ValueError, match="multiple of 16"):
+        ImageEncoderConfig(width=20)
+
+
+def test_image_encoder_runs_once_per_call_and_is_timed():
+    pol = image_policy()
+    calls = []
+    pol.obs_encoder.register_forward_hook(lambda m, a, o: calls.append(a[0][CAMS[0]].shape[0]))
+    pol.predict_action(image_obs(3), torch.Generator().manual_seed(0))
+    assert calls == [3 * 2]  # one forward for all frames of the batch, none inside the 6-step loop
+    calls.clear()
+    with tts.accelerate(pol, ("timestep",), plan=tts.plans.uniform(0.5, "timestep")) as acc:
+        for c in range(2):
+            pol.predict_action(image_obs(3, c), torch.Generator().manual_seed(c))
+        timing = acc.summary().calls[-1].timing
+    assert calls == [6, 6]
+    assert timing["image_encoder"] > 0 and timing["total"] >= timing["image_encoder"]
+
+
+def test_all_compute_plan_is_bit_identical_and_checkpoints_round_trip(tmp_path):
+    pol = image_policy()
+    obs = image_obs(2, 3)
+    ref = pol.predict_action(obs, torch.Generator().manual_seed(1))["action"]
+    with tts.accelerate(pol, ("timestep", "rollout"), plan=tts.plans.dense()):
+        assert torch.equal(pol.predict_action(obs, torch.Generator().manual_seed(1))["action"], ref)
+    save_policy(pol, tmp_path / "img", dtype=torch.float32)
+    back = load_policy(tmp_path / "img")
+    assert isinstance(back, DiffusionTransformerHybridImagePolicy) and back.image_cfg == pol.image_cfg
+    assert torch.equal(back.predict_action(obs, torch.Generator().manual_seed(1))["action"], ref)
+
+
+def test_mismatched_condition_width_and_missing_camera_are_clear_errors():
+    cfg = image_policy().cfg
+    with pytest.raises(ValueError, match="cond_dim"):
+        DiffusionTransformerHybridImagePolicy(cfg, ImageEncoderConfig(cameras=CAMS[:1], image_size=32, crop_size=24,
+                                                                      num_kp=4, feature_dim=8, width=16))
+    obs = image_obs(2)
+    del obs[CAMS[1]]
+    with pytest.raises(KeyError, match="robot0_eye_in_hand_image"):
+        image_policy().predict_action(obs)
+
+
+def test_image_hdf5_round_trip_keeps_uint8_frames_compressed(tmp_path):
+    import h5py
+
+    from robot_suite.robomimic import Demo, read_demos, write_demos
+
+    g = np.random.default_rng(0)
+    frames = np.zeros((4, 32, 32, 3), dtype=np.uint8)
+    frames[:, 8:16, 8:16] = g.integers(0, 256, size=(4, 8, 8, 3), dtype=np.uint8)
+    demo = Demo(obs={"agentview_image": frames, "robot0_eef_pos": g.normal(size=(4, 3))},
+                actions=g.normal(size=(4, 7)), rewards=np.zeros(4), dones=np.arange(4) == 3)
+    write_demos(tmp_path / "img.hdf5", [demo], {"env_name": "Lift"})
+    back = read_demos(tmp_path / "img.hdf5", obs_keys=["agentview_image", "robot0_eef_pos"])[0]
+    assert back.obs["agentview_image"].dtype == np.uint8 and np.array_equal(back.obs["agentview_image"], frames)
+    with h5py.File(tmp_path / "img.hdf5") as f:
+        d = f["data/demo_0/obs/agentview_image"]
+        assert d.compression == "gzip" and d.chunks == (1, 32, 32, 3)
+        assert f["data/demo_0/obs/robot0_eef_pos"].compression is None
