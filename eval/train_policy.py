@@ -4,7 +4,8 @@
         --steps 6000 --batch 128 --seed 0
 
 Resumable: training state is saved every ``--save-every`` steps under ``--run-dir`` and
-``--resume`` continues from it. The final EMA weights are written atomically as
+``--resume`` continues from it. ``--init CKPT`` warm-starts from a finished checkpoint's weights
+(same data and architecture) with a fresh optimizer and learning-rate cycle. The final EMA weights are written atomically as
 ``<out>.safetensors`` + ``<out>.json`` (config, data, command, git SHA, seed, time).
 Model size (documented choice): 8 decoder layers like the paper's DP-T (24 prunable branches per
 step), width 128 instead of 256 so that a task trains in under ~30 min on 2 CPU cores and the
@@ -25,17 +26,17 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import parse_args, provenance  # noqa: E402
 
-from tts.adapters.dp_policy import DiffusionTransformerLowdimPolicy, PolicyConfig, save_policy  # noqa: E402
-from robot_suite.robomimic import read_demos  # noqa: E402
-from robot_suite.tasks import OBS_KEYS  # noqa: E402
+from tts.adapters.dp_policy import DiffusionTransformerLowdimPolicy, PolicyConfig, load_policy, save_policy  # noqa: E402
+from robot_suite.robomimic import read_demos, read_env_args  # noqa: E402
+from robot_suite.tasks import OBS_KEYS, TASKS, task_of_env  # noqa: E402
 from tts.io import atomic_path  # noqa: E402
 
 
-def windows(demos, horizon: int, n_obs: int, n_act: int) -> tuple[torch.Tensor, torch.Tensor]:
+def windows(demos, horizon: int, n_obs: int, n_act: int, keys=OBS_KEYS) -> tuple[torch.Tensor, torch.Tensor]:
     """Diffusion Policy's sequence sampling: every start index, edge-padded (To-1 before, Ta-1 after)."""
     obs_w, act_w = [], []
     for d in demos:
-        obs = np.concatenate([d.obs[k] for k in OBS_KEYS], axis=-1).astype(np.float32)
+        obs = np.concatenate([d.obs[k] for k in keys], axis=-1).astype(np.float32)
         act = d.actions.astype(np.float32)
         T = len(act)
         for start in range(-(n_obs - 1), T - horizon + n_act):
@@ -64,6 +65,16 @@ class EMA:
             e.copy_(b)
 
 
+def init_from(policy: DiffusionTransformerLowdimPolicy, path: Path) -> None:
+    """Copy a finished checkpoint's weights into ``policy`` (normalisers included); a different
+    architecture or observation layout is an error, not a partial load."""
+    src = load_policy(path)
+    if src.cfg.model != policy.cfg.model or list(src.cfg.obs_dims) != list(policy.cfg.obs_dims):
+        raise SystemExit(f"--init {path}: its model config {src.cfg.model} / obs dims {src.cfg.obs_dims} differ "
+                         f"from this run's {policy.cfg.model} / {policy.cfg.obs_dims}")
+    policy.load_state_dict(src.state_dict())
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, required=True)
@@ -82,6 +93,9 @@ def main(argv=None) -> None:
     ap.add_argument("--run-dir", type=Path, default=None, help="resumable state (default: runs/<out name>)")
     ap.add_argument("--save-every", type=int, default=500)
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--init", type=Path, default=None,
+                    help="warm start: a finished checkpoint (path without suffix) of the same architecture; its "
+                         "weights start both the model and its EMA, the optimizer and LR cycle start afresh")
     ap.add_argument("--export-only", action="store_true",
                     help="write the checkpoint from the latest saved state (EMA) without training further")
     args = parse_args(ap, argv)
@@ -89,20 +103,23 @@ def main(argv=None) -> None:
         args.resume = True
 
     torch.manual_seed(args.seed)
-    demos = read_demos(args.data, OBS_KEYS, limit=args.max_demos)
-    obs_dims = [int(demos[0].obs[k].shape[-1]) for k in OBS_KEYS]
+    keys = TASKS[task_of_env(read_env_args(args.data)["env_name"])].obs_keys
+    demos = read_demos(args.data, keys, limit=args.max_demos)
+    obs_dims = [int(demos[0].obs[k].shape[-1]) for k in keys]
     action_dim = int(demos[0].actions.shape[-1])
     H, To, Ta = 10, 2, 8
-    obs_w, act_w = windows(demos, H, To, Ta)
+    obs_w, act_w = windows(demos, H, To, Ta, keys)
     cfg = PolicyConfig(
         model=dict(input_dim=action_dim, output_dim=action_dim, horizon=H, n_obs_steps=To, cond_dim=sum(obs_dims),
                    n_layer=args.layers, n_head=args.heads, n_emb=args.width, p_drop_emb=0.0, p_drop_attn=args.dropout,
                    causal_attn=True, time_as_cond=True, obs_as_cond=True, n_cond_layers=0),
-        obs_keys=list(OBS_KEYS), obs_dims=obs_dims, action_dim=action_dim, horizon=H, n_obs_steps=To,
+        obs_keys=list(keys), obs_dims=obs_dims, action_dim=action_dim, horizon=H, n_obs_steps=To,
         n_action_steps=Ta, num_train_timesteps=100, num_inference_steps=100, scheduler="ddpm")
     policy = DiffusionTransformerLowdimPolicy(cfg)
     policy.obs_normalizer.fit(obs_w)
     policy.action_normalizer.fit(act_w)
+    if args.init is not None:
+        init_from(policy, args.init)
     ema = EMA(policy)
     opt = torch.optim.AdamW(policy.model.parameters(), lr=args.lr, betas=(0.9, 0.95), weight_decay=1e-3)
     warmup = max(1, min(500, args.steps // 10))
@@ -147,7 +164,7 @@ def main(argv=None) -> None:
                                 "opt": opt.state_dict(), "sched": sched.state_dict(), "step": step,
                                 "losses": losses, "rng": torch.get_rng_state()}, tmp)
     meta = provenance(seeds={"train": args.seed})
-    meta.update(data=str(args.data), demos=len(demos), windows=len(obs_w), steps=args.steps, steps_done=step,
+    meta.update(init=str(args.init) if args.init else None, data=str(args.data), demos=len(demos), windows=len(obs_w), steps=args.steps, steps_done=step,
                 batch=args.batch,
                 lr=args.lr, final_loss=float(np.mean(losses[-200:])), train_seconds_this_run=time.time() - t0,
                 note="trained on scripted-expert demonstrations (uniform, not human data)")

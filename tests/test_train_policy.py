@@ -47,3 +47,41 @@ def test_a_run_shorter_than_its_warm_up_trains(tmp_path, one_thread):
     train_policy.main(args + ["--out", str(tmp_path / "b"), "--steps", "4", "--run-dir", str(tmp_path / "rb")])
     a, b = load_policy(tmp_path / "a").model.state_dict(), load_policy(tmp_path / "b").model.state_dict()
     assert any(not torch.equal(a[k], b[k]) for k in a)  # the two extra steps changed the weights
+
+
+def test_push_t_data_trains_on_its_own_observation_keys(tmp_path, one_thread):
+    import train_policy
+    from tts.adapters.dp_policy import load_policy
+    from robot_suite.tasks import TASKS, env_args
+
+    rng = np.random.default_rng(2)
+    keys = TASKS["pusht"].obs_keys
+    dims = {"agent_pos": 2, "block_keypoints": 16}
+    demos = [Demo(obs={k: rng.normal(size=(20, dims[k])) for k in keys}, actions=rng.uniform(0, 512, (20, 2)),
+                  rewards=np.arange(20) == 19, dones=np.arange(20) == 19)]
+    write_demos(tmp_path / "d.hdf5", demos, env_args("pusht"))
+    train_policy.main(["--data", str(tmp_path / "d.hdf5"), "--out", str(tmp_path / "p"), "--steps", "2",
+                       "--width", "16", "--layers", "1", "--heads", "2", "--batch", "4", "--run-dir", str(tmp_path / "r")])
+    policy = load_policy(tmp_path / "p")
+    assert list(policy.cfg.obs_keys) == list(keys) and list(policy.cfg.obs_dims) == [2, 16]
+    assert policy.cfg.action_dim == 2
+
+
+def test_warm_start_copies_weights_and_refuses_another_architecture(tmp_path, one_thread):
+    import train_policy
+    from tts.adapters.dp_policy import load_policy
+
+    rng = np.random.default_rng(3)
+    demos = [Demo(obs={k: rng.normal(size=(20, DIMS[k])) for k in OBS_KEYS}, actions=rng.uniform(-1, 1, (20, 7)),
+                  rewards=np.arange(20) == 19, dones=np.arange(20) == 19)]
+    write_demos(tmp_path / "d.hdf5", demos, {"env_name": "Lift"})
+    base = ["--data", str(tmp_path / "d.hdf5"), "--heads", "2", "--batch", "4"]
+    train_policy.main(base + ["--width", "16", "--layers", "1", "--out", str(tmp_path / "a"), "--steps", "2",
+                              "--run-dir", str(tmp_path / "ra")])
+    train_policy.main(base + ["--width", "16", "--layers", "1", "--out", str(tmp_path / "b"), "--steps", "1",
+                              "--lr", "0", "--init", str(tmp_path / "a"), "--run-dir", str(tmp_path / "rb")])
+    a, b = load_policy(tmp_path / "a").state_dict(), load_policy(tmp_path / "b").state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)  # lr 0: the warm start is the starting checkpoint
+    with pytest.raises(SystemExit, match="differ"):
+        train_policy.main(base + ["--width", "32", "--layers", "1", "--out", str(tmp_path / "c"), "--steps", "1",
+                                  "--init", str(tmp_path / "a"), "--run-dir", str(tmp_path / "rc")])
