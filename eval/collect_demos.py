@@ -39,9 +39,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, provenance, write_json  # noqa: E402
 
 from robot_suite import experts as experts_module  # noqa: E402
+from robot_suite import pusht as pusht_module  # noqa: E402
 from robot_suite.experts import EXPERT, EXPERTS, OPERATORS, Operator, make_expert  # noqa: E402
 from robot_suite.robomimic import Demo, read_demos, write_demos  # noqa: E402
-from robot_suite.tasks import OBS_KEYS, TASKS, env_args, low_dim_obs, make_env, reset_env  # noqa: E402
+from robot_suite.tasks import TASKS, env_args, low_dim_obs, make_env, reset_env  # noqa: E402
 
 QUALITIES = ("better", "okay", "worse")
 
@@ -56,14 +57,15 @@ def run_expert(env, task: str, seed: int, extra_steps: int = 10, noise: float = 
     op_rng = np.random.default_rng([seed, zlib.crc32(operator.name.encode())])
     expert = make_expert(task, env, operator, op_rng)
     rng = np.random.default_rng(seed + 7919)
-    obs = {k: [] for k in OBS_KEYS}
+    keys = TASKS[task].obs_keys
+    obs = {k: [] for k in keys}
     actions, rewards, dones, states = [], [], [], []
     success_at = None
     for t in range(TASKS[task].horizon):
         lo = low_dim_obs(raw)
-        for k in OBS_KEYS:
+        for k in keys:
             obs[k].append(lo[k])
-        states.append(env.sim.get_state().flatten())
+        states.append(raw["state"] if task == "pusht" else env.sim.get_state().flatten())
         a = expert.act(raw)
         executed = a.copy()
         if noise > 0 and expert.phase in expert.noisy_phases:
@@ -88,7 +90,8 @@ def run_expert(env, task: str, seed: int, extra_steps: int = 10, noise: float = 
 
 
 def _expert_code() -> str:
-    return hashlib.sha1(Path(experts_module.__file__).read_bytes()).hexdigest()[:12]
+    files = (experts_module.__file__, pusht_module.__file__)
+    return hashlib.sha1(b"".join(Path(f).read_bytes() for f in files)).hexdigest()[:12]
 
 
 def _run_operator(env, task: str, op: Operator, seeds: list[int], keep: int, noise: float,

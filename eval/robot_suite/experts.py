@@ -53,6 +53,8 @@ from typing import Optional
 
 import numpy as np
 
+from .pusht import PUSH_OPERATORS, PushTExpert
+
 __all__ = ["Operator", "EXPERT", "OPERATORS", "LiftExpert", "CanExpert", "SquareExpert", "EXPERTS", "make_expert"]
 
 _DOWN = np.diag([1.0, -1.0, -1.0])  # the hand pointing down at yaw 0: fingers close along world y
@@ -433,7 +435,7 @@ class SquareExpert(_Waypoints):
         return min([o for o in options if lo < hand + _wrap(o[1] - psi) < hi] or options)[1]
 
 
-EXPERTS = {"lift": LiftExpert, "can": CanExpert, "square": SquareExpert}
+EXPERTS = {"lift": LiftExpert, "can": CanExpert, "square": SquareExpert, "pusht": PushTExpert}
 
 _Q = np.pi / 4
 OPERATORS: dict[str, list[Operator]] = {
@@ -476,6 +478,7 @@ OPERATORS: dict[str, list[Operator]] = {
         Operator("worse_operator_2", "worse", speed=0.7, yaw=-0.8, approach=(0.06, -0.08), grasp_shift=0.008,
                  place=np.pi / 2, hesitate=0.015, pause=(10, 25), miss=0.35, max_grasps=3, noise=0.2),
     ],
+    "pusht": PUSH_OPERATORS,
 }
 
 

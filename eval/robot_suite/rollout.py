@@ -9,7 +9,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .tasks import OBS_KEYS, TASKS, low_dim_obs, reset_env
+from .tasks import TASKS, low_dim_obs, reset_env
 
 __all__ = ["noise_seed", "run_wave"]
 
@@ -41,13 +41,14 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
     traj = [{"obs": [], "action_pred": [], "action": [], "noise_seed": []} for _ in range(n)]
     latencies = []
     horizon = horizon or TASKS[task].horizon
+    keys = TASKS[task].obs_keys
     t = 0
     call = 0
     def done(e: int) -> bool:  # an env that stops acting: solved, unless the episode runs to the horizon
         return success[e] and not full_horizon
 
     while t < horizon and not all(done(e) for e in range(n)):
-        obs = {k: np.stack([np.stack([h[j][k] for j in range(cfg.n_obs_steps)]) for h in hist]) for k in OBS_KEYS}
+        obs = {k: np.stack([np.stack([h[j][k] for j in range(cfg.n_obs_steps)]) for h in hist]) for k in keys}
         gen = [torch.Generator().manual_seed(noise_seed(s, call)) for s in seeds] if record else generator
         t0 = time.perf_counter()
         out = policy.predict_action(obs, generator=gen)

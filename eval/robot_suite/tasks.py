@@ -1,8 +1,10 @@
-"""robosuite 1.5 manipulation tasks with robomimic's low-dim observations.
+"""The manipulation tasks: robosuite 1.5 with robomimic's low-dim observations, and Push-T.
 
-Tasks (robomimic PH settings): Panda arm, OSC_POSE controller (7-D action: 6 delta pose in [-1, 1]
-+ gripper), 20 Hz control, horizon 400. Observations use robomimic's keys: ``object`` (robosuite's
-``object-state``), ``robot0_eef_pos``, ``robot0_eef_quat``, ``robot0_gripper_qpos``.
+robosuite tasks (robomimic PH settings): Panda arm, OSC_POSE controller (7-D action: 6 delta pose in
+[-1, 1] + gripper), 20 Hz control, horizon 400. Observations use robomimic's keys: ``object``
+(robosuite's ``object-state``), ``robot0_eef_pos``, ``robot0_eef_quat``, ``robot0_gripper_qpos``.
+Push-T (gym-pusht, ``robot_suite/pusht.py``): 2-D target position, 10 Hz, horizon 300, observations
+``agent_pos`` and ``block_keypoints``.
 """
 from __future__ import annotations
 
@@ -13,7 +15,9 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["TASKS", "TaskConfig", "OBS_KEYS", "make_env", "reset_env", "low_dim_obs", "env_args"]
+from .pusht import PUSHT_OBS_KEYS, PushTScene
+
+__all__ = ["TASKS", "TaskConfig", "OBS_KEYS", "make_env", "reset_env", "low_dim_obs", "env_args", "task_of_env"]
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
@@ -22,13 +26,23 @@ OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos"
 class TaskConfig:
     env_name: str
     horizon: int = 400
+    obs_keys: tuple[str, ...] = OBS_KEYS
 
 
 TASKS = {
     "lift": TaskConfig("Lift"),
     "can": TaskConfig("PickPlaceCan"),
     "square": TaskConfig("NutAssemblySquare"),
+    "pusht": TaskConfig("PushT", horizon=300, obs_keys=PUSHT_OBS_KEYS),
 }
+
+
+def task_of_env(env_name: str) -> str:
+    """The task whose env a dataset's ``env_args['env_name']`` names."""
+    for task, cfg in TASKS.items():
+        if cfg.env_name == env_name:
+            return task
+    raise ValueError(f"no task for env {env_name!r}; known: {[c.env_name for c in TASKS.values()]}")
 
 
 def _env_kwargs(task: str, render: bool) -> dict:
@@ -71,6 +85,8 @@ def make_env(task: str, seed: Optional[int] = None, render: bool = False):
     """A robosuite env for ``task`` (lift / can / square); ``seed`` fixes object placements."""
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; choose from {sorted(TASKS)}")
+    if task == "pusht":
+        return PushTScene()
     suite = import_robosuite()
     env = suite.make(TASKS[task].env_name, seed=seed, **_env_kwargs(task, render))
     return env
@@ -80,8 +96,8 @@ def reset_env(env, seed: int) -> dict:
     """Reset ``env`` to the episode of ``seed``: object placement and robot init noise both come
     from ``env.rng``, and a hard reset rebuilds the placement sampler from it, so one env object
     can replay any seed (make + reset costs seconds, a hard reset about 0.2 s)."""
-    import numpy as np
-
+    if isinstance(env, PushTScene):
+        return env.reset_seed(seed)
     rng = np.random.default_rng(seed)
     env.rng = rng
     sampler = getattr(env, "placement_initializer", None)  # built once, keeps its own rng reference
@@ -95,12 +111,19 @@ def reset_env(env, seed: int) -> dict:
 
 def env_args(task: str) -> dict:
     """robomimic-style env metadata stored in datasets."""
+    if task == "pusht":
+        return {"env_name": "PushT", "type": 0, "env_kwargs": {"obs_type": "state", "control_hz": 10,
+                                                                "horizon": TASKS[task].horizon},
+                "env_version": "gym-pusht"}
     kw = _env_kwargs(task, False)
     kw["controller_configs"] = "BASIC (OSC_POSE arm), Panda"
     return {"env_name": TASKS[task].env_name, "type": 1, "env_kwargs": kw, "env_version": "robosuite 1.5"}
 
 
 def low_dim_obs(raw: dict) -> dict[str, np.ndarray]:
+    """The policy's observation keys from an env's raw observation."""
+    if "object-state" not in raw:  # Push-T: the scene already gives them
+        return {k: np.asarray(raw[k], dtype=np.float32) for k in PUSHT_OBS_KEYS}
     return {
         "object": np.asarray(raw["object-state"], dtype=np.float32),
         "robot0_eef_pos": np.asarray(raw["robot0_eef_pos"], dtype=np.float32),
