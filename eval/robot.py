@@ -135,6 +135,8 @@ def report(args, label, seeds, done, latencies, summary, policy) -> dict:
         "episodes_requested": len(seeds),
         "episodes_done": len(eps),
         "success_rate": float(np.mean([e["success"] for e in eps])) if eps else float("nan"),
+        "mean_max_coverage": (float(np.mean([e["max_coverage"] for e in eps]))
+                              if eps and all("max_coverage" in e for e in eps) else None),
         "batch": min(args.n_envs, len(seeds)),
         "latency_ms": {"median": med * 1e3, "p90": float(np.percentile(lat, 90)) * 1e3, "calls": len(latencies)},
         "calls_per_s": 1.0 / med,

@@ -9,8 +9,9 @@ in results/robot/ and results/image/, and renders the image sample grids.
 from __future__ import annotations
 
 import json
-import re
 import math
+import re
+import statistics
 import sys
 from pathlib import Path
 
@@ -18,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, write_atomic  # noqa: E402
 from common.stats import paired_vs_dense, policy_of  # noqa: E402
 from common import frontier  # noqa: E402
+from robot_suite.tasks import TASKS  # noqa: E402
 
 
 def robot_table(folder: Path) -> str:
@@ -85,8 +87,9 @@ def steps_table(folder: Path) -> str:
                 (r["method"] == "dense" or FEW_STEP.match(r["method"])):
             runs.setdefault((policy_of(r), r["method"]), []).append(r)
     methods = sorted({m for _, m in runs}, key=_few_step_key)
-    rows = ["| policy | " + " | ".join(f"`{m}`" for m in methods) + " | dense - best 3-step |",
-            "|---|" + "---|" * (len(methods) + 1)]
+    rows = ["| policy | " + " | ".join(f"`{m}`" for m in methods) + " | dense - best 3-step | dense: median steps "
+            "of a success (horizon) |",
+            "|---|" + "---|" * (len(methods) + 2)]
 
     def pooled(policy: str, m: str):
         rs = runs.get((policy, m))
@@ -104,7 +107,9 @@ def steps_table(folder: Path) -> str:
         three = [pooled(policy, m)[0] for m in methods if m != "dense" and _few_step_key(m)[2] == 3]
         three = [x for x in three if x is not None]
         gap = f"{dense - max(three):+.2f}" if dense is not None and three else "-"
-        rows.append(f"| {policy} | " + " | ".join(cells) + f" | {gap} |")
+        wins = [e["env_steps"] for r in runs.get((policy, "dense"), []) for e in r["episodes"] if e["success"]]
+        pace = f"{statistics.median(wins):.0f} ({TASKS[runs[(policy, 'dense')][0]['task']].horizon})" if wins else "-"
+        rows.append(f"| {policy} | " + " | ".join(cells) + f" | {gap} | {pace} |")
     return "\n".join(rows) + "\n"
 
 
@@ -116,6 +121,8 @@ def operators_table(folder: Path) -> str:
             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for path in sorted(folder.glob("*_mh.json")):
         r = json.loads(path.read_text())
+        if r["task"] == "pusht":
+            continue  # its operators differ in other ways: push_operators_table
         modes_path = folder / f"{r['task']}_mh_modes.json"
         modes = json.loads(modes_path.read_text())["operators"] if modes_path.exists() else {}
         for op in r["operators"]:
@@ -132,6 +139,24 @@ def operators_table(folder: Path) -> str:
         r = json.loads(path.read_text())
         for name, v in r["neighbour_action_spread"].items():
             rows.append(f"| {r['task']} | {name} | {v['mean_action_std']:.3f} | {100 * v['opposed_pair_fraction']:.1f}% |")
+    return "\n".join(rows) + "\n"
+
+
+def push_operators_table(folder: Path) -> str:
+    """Push-T's scripted operators (results/experts/pusht_mh.json): which way round the block each
+    prefers, push length, walking speed, hesitation, recorded noise, success and demo length."""
+    path = folder / "pusht_mh.json"
+    if not path.exists():
+        return "No Push-T data recorded yet (eval/collect_demos.py --task pusht --mix mh).\n"
+    rows = ["| operator | quality | route round the block (how often) | push length | speed | pauses per step "
+            "| noise (px) | success (seeds) | mean demo length |", "|---|---|---|---|---|---|---|---|---|"]
+    for op in json.loads(path.read_text())["operators"]:
+        prm = op["params"]
+        route = {1: "counter-clockwise", -1: "clockwise", None: "shorter way"}[prm["route"]]
+        route += f" ({prm['route_bias']:.0%}, else shorter)" if prm["route"] is not None else ""
+        rows.append(f"| {op['operator']} | {op['quality']} | {route} | {prm['push']:g}x | {prm['speed']:g} | "
+                    f"{prm['hesitate']:g} | {prm['noise']:g} | {op['success_rate']:.2f} ({op['attempts']}) | "
+                    f"{op['mean_demo_length']:.0f} |")
     return "\n".join(rows) + "\n"
 
 
@@ -435,7 +460,8 @@ def main() -> None:
                              "agreement": agreement_table(robot), "headroom": headroom_table(robot),
                              "rollout-age": rollout_age_table(robot),
                              "runs": robot_table(robot)})
-    fill(docs / "testbed.md", {"steps": steps_table(robot), "table7": table7(robot), "operators": operators_table(REPO / "results" / "experts")})
+    fill(docs / "testbed.md", {"steps": steps_table(robot), "table7": table7(robot), "operators": operators_table(REPO / "results" / "experts"),
+                                "push-operators": push_operators_table(REPO / "results" / "experts")})
     readme = {"headline-robot": headline_robot(robot)}
     if any(image.glob("digits_*.json")):
         sample_grids(image)

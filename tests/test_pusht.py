@@ -62,3 +62,21 @@ def test_datasets_name_their_task():
     assert task_of_env("PushT") == "pusht" and task_of_env("Lift") == "lift"
     with pytest.raises(ValueError, match="no task for env"):
         task_of_env("Transport")
+
+
+def test_policy_rollout_on_push_t_reports_coverage(one_thread):
+    import torch
+    from robot_suite.rollout import run_wave
+    from tts.adapters.dp_policy import DiffusionTransformerLowdimPolicy, PolicyConfig
+
+    cfg = PolicyConfig(
+        model=dict(input_dim=2, output_dim=2, horizon=10, n_obs_steps=2, cond_dim=18, n_layer=1, n_head=2, n_emb=16,
+                   p_drop_emb=0.0, p_drop_attn=0.0, causal_attn=True, obs_as_cond=True),
+        obs_keys=list(TASKS["pusht"].obs_keys), obs_dims=[2, 16], action_dim=2, num_inference_steps=2)
+    policy = DiffusionTransformerLowdimPolicy(cfg)
+    policy.obs_normalizer.fit(torch.rand(50, 18) * 512)
+    policy.action_normalizer.fit(torch.rand(50, 2) * 512)
+    envs = [make_env("pusht") for _ in range(2)]
+    outcomes, latencies = run_wave(policy.eval(), envs, [7, 8], "pusht", torch.Generator().manual_seed(0), horizon=16)
+    assert [o["env_steps"] for o in outcomes] == [16, 16] and len(latencies) == 2
+    assert all(0.0 <= o["max_coverage"] <= 1.0 and not o["success"] for o in outcomes)

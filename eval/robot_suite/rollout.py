@@ -38,6 +38,7 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
     hist = [collections.deque([low_dim_obs(r)] * cfg.n_obs_steps, maxlen=cfg.n_obs_steps) for r in raws]
     success = [False] * n
     steps = [0] * n
+    coverage = [0.0] * n  # Push-T: the best goal coverage reached (Diffusion Policy's score for the task)
     traj = [{"obs": [], "action_pred": [], "action": [], "noise_seed": []} for _ in range(n)]
     latencies = []
     horizon = horizon or TASKS[task].horizon
@@ -68,6 +69,7 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
                 raw, _, _, _ = envs[e].step(actions[e, a_i])
                 hist[e].append(low_dim_obs(raw))
                 steps[e] += 1
+                coverage[e] = max(coverage[e], float(getattr(envs[e], "coverage", 0.0)))
                 if envs[e]._check_success():
                     success[e] = True
             t += 1
@@ -75,6 +77,9 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
                 break
         call += 1
     outcomes = [{"seed": s, "success": bool(ok), "env_steps": st} for s, ok, st in zip(seeds, success, steps)]
+    if any(hasattr(env, "coverage") for env in envs[:n]):
+        for o, c in zip(outcomes, coverage):
+            o["max_coverage"] = c
     if record:
         for o, tr in zip(outcomes, traj):
             o["trajectory"] = {k: np.stack(v) for k, v in tr.items()}
