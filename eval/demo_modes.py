@@ -17,6 +17,12 @@ Reads a dataset written by ``collect_demos.py --mix mh`` (and optionally the sin
 (d) demo length per operator (only successful demos are kept), with each operator's success rate;
 (e) hesitations (steps commanding no motion) and failed grasps per kept demo, per operator;
 (f) square only: where the nut's handle points once the nut is on the peg, per operator.
+
+Push-T (``--task pusht``, ``docs/pusht_mh_modes.png``, ``results/experts/pusht_mh_modes.json``):
+(a) detours round the block per operator: stretches where the block stays still and the agent
+    walks at least 90 degrees around its centre, counted clockwise or counter-clockwise;
+(b) the agent's paths in the block's frame for the two better operators;
+(c) the spread of commanded moves (target minus agent position, px) from similar states, as (c) above.
 """
 from __future__ import annotations
 
@@ -33,9 +39,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, provenance, write_json  # noqa: E402
 
 from robot_suite.robomimic import Demo, read_demos  # noqa: E402
-from robot_suite.tasks import OBS_KEYS  # noqa: E402
+from robot_suite.tasks import OBS_KEYS, TASKS  # noqa: E402
 
-SYMMETRY = {"lift": np.pi / 2, "can": None, "square": np.pi}  # object yaw period that leaves a grasp the same
+SYMMETRY = {"lift": np.pi / 2, "can": None, "square": np.pi, "pusht": None}  # object yaw period that leaves a grasp the same
 QUAT = {"lift": slice(3, 7), "can": slice(10, 14), "square": slice(10, 14)}  # the object's xyzw quaternion in obs "object"
 
 
@@ -77,11 +83,18 @@ def grasp_features(demo: Demo, task: str) -> Optional[dict]:
     return {"t": t, "hand_yaw": hand_yaw, "object_yaw": obj_yaw, "turn": turn, "azimuth": azimuth}
 
 
+def _position_commands(demo: Demo) -> np.ndarray:
+    return demo.actions[:, :3]
+
+
 def neighbour_spread(demos: list[Demo], queries: int = 1500, k: int = 10, seed: int = 0,
-                     scale: Optional[tuple[np.ndarray, np.ndarray]] = None) -> dict:
-    """Action spread among the k nearest states of other demos (see the module docstring)."""
-    x = np.concatenate([np.concatenate([d.obs[key] for key in OBS_KEYS], axis=1) for d in demos]).astype(np.float32)
-    a = np.concatenate([d.actions[:, :3] for d in demos]).astype(np.float32)
+                     scale: Optional[tuple[np.ndarray, np.ndarray]] = None, keys=OBS_KEYS,
+                     commands=_position_commands, moving: float = 0.1) -> dict:
+    """Action spread among the k nearest states of other demos (see the module docstring);
+    ``commands`` maps a demo to the motion commands compared, ``moving`` is the norm above which a
+    command counts as a move."""
+    x = np.concatenate([np.concatenate([d.obs[key] for key in keys], axis=1) for d in demos]).astype(np.float32)
+    a = np.concatenate([commands(d) for d in demos]).astype(np.float32)
     owner = np.concatenate([np.full(len(d), i) for i, d in enumerate(demos)])
     mu, sd = scale if scale is not None else (x.mean(0), x.std(0) + 1e-6)
     z = (x - mu) / sd
@@ -96,15 +109,111 @@ def neighbour_spread(demos: list[Demo], queries: int = 1500, k: int = 10, seed: 
             acts = a[idx]
             stds.append(acts.std(0).mean())
             dists.append(float(np.sqrt(np.sort(d2[np.where(chunk == row)[0][0], idx])).mean()))
-            moving = acts[np.linalg.norm(acts, axis=1) > 0.1]
-            if len(moving) > 1:
-                u = moving / np.linalg.norm(moving, axis=1, keepdims=True)
+            moves = acts[np.linalg.norm(acts, axis=1) > moving]
+            if len(moves) > 1:
+                u = moves / np.linalg.norm(moves, axis=1, keepdims=True)
                 cos = u @ u.T
                 iu = np.triu_indices(len(u), 1)
                 opposed += int((cos[iu] < 0).sum())
                 pairs += len(iu[0])
     return {"queries": len(q), "k": k, "mean_action_std": float(np.mean(stds)),
             "opposed_pair_fraction": opposed / max(pairs, 1), "mean_neighbour_distance_z": float(np.mean(dists))}
+
+
+def push_moves(demo: Demo) -> np.ndarray:
+    """Push-T: the commanded move of each step (target minus agent position, px)."""
+    return demo.actions - demo.obs["agent_pos"]
+
+
+def detours(demo: Demo, min_turn: float = np.pi / 2, min_radius: float = 60.0) -> list[float]:
+    """Signed angles (rad, + counter-clockwise) of the stretches in which the block stays still and
+    the agent, at least ``min_radius`` px from the block's centre, walks at least ``min_turn`` round it."""
+    centre = demo.obs["block_keypoints"].reshape(len(demo), 8, 2).mean(1)
+    still = np.r_[np.abs(np.diff(centre, axis=0)).max(1) < 0.5, False]
+    rel = demo.obs["agent_pos"] - centre
+    far = np.linalg.norm(rel, axis=1) > min_radius
+    ang = np.arctan2(rel[:, 1], rel[:, 0])
+    out, total = [], 0.0
+    for t in range(len(demo) - 1):
+        if still[t] and far[t] and far[t + 1]:
+            total += _wrap(ang[t + 1] - ang[t])
+        else:
+            if abs(total) >= min_turn:
+                out.append(total)
+            total = 0.0
+    return out
+
+
+def push_modes(args, demos: list[Demo], by_op: dict[str, list[Demo]], success: dict) -> None:
+    """The Push-T figure and numbers (module docstring)."""
+    import matplotlib.pyplot as plt
+
+    from robot_suite.pusht import PUSHT_OBS_KEYS, T_OUTLINE
+
+    ops = list(by_op)
+    per_op = {}
+    for op in ops:
+        turns = [a for d in by_op[op] for a in detours(d)]
+        lengths = np.array([len(d) for d in by_op[op]])
+        per_op[op] = {"quality": str(by_op[op][0].attrs["quality"]), "demos": len(by_op[op]),
+                      "success_rate": success.get(op), "mean_length": float(lengths.mean()),
+                      "detours": len(turns), "detours_ccw": int(sum(a > 0 for a in turns)),
+                      "detours_per_demo": len(turns) / len(by_op[op])}
+    x_all = np.concatenate([np.concatenate([d.obs[k] for k in PUSHT_OBS_KEYS], axis=1) for d in demos])
+    scale = (x_all.mean(0), x_all.std(0) + 1e-6)
+    sets = {"MH all": demos, "MH better": [d for d in demos if d.attrs["quality"] == "better"], **by_op}
+    if args.ph is not None and args.ph.exists():
+        sets = {"PH expert": read_demos(args.ph, PUSHT_OBS_KEYS)[: len(sets["MH better"])], **sets}
+        turns = [a for d in sets["PH expert"] for a in detours(d)]
+        per_op["PH expert"] = {"detours": len(turns), "detours_ccw": int(sum(a > 0 for a in turns)),
+                               "detours_per_demo": len(turns) / len(sets["PH expert"])}
+    spread = {name: neighbour_spread(ds, args.queries, args.k, scale=scale, keys=PUSHT_OBS_KEYS,
+                                     commands=push_moves, moving=5.0) for name, ds in sets.items()}
+    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
+    names = list(per_op)
+    xs = np.arange(len(names))
+    ccw = [per_op[n]["detours_ccw"] for n in names]
+    cw = [per_op[n]["detours"] - per_op[n]["detours_ccw"] for n in names]
+    axes[0].bar(xs, ccw, 0.6, label="counter-clockwise")
+    axes[0].bar(xs, cw, 0.6, bottom=ccw, label="clockwise")
+    axes[0].set_xticks(xs)
+    axes[0].set_xticklabels(names, rotation=30, ha="right", fontsize=8)
+    axes[0].set_ylabel("detours of >= 90 deg round the still block")
+    axes[0].set_title("(a) which way round the block")
+    axes[0].legend(fontsize=8)
+    ax = axes[1]
+    outline = np.vstack([T_OUTLINE, T_OUTLINE[:1]])
+    ax.plot(outline[:, 0], outline[:, 1], color="k", lw=2)
+    for op, color in zip([o for o in ops if per_op[o]["quality"] == "better"][:2], ("tab:blue", "tab:orange")):
+        for d in by_op[op][:12]:
+            kp = d.obs["block_keypoints"].reshape(len(d), 8, 2)
+            pos = (kp[:, 0] + kp[:, 1]) / 2  # corners 0 and 1 are (-60, 0) and (60, 0) in the block's frame
+            u = (kp[:, 1] - kp[:, 0]) / np.linalg.norm(kp[:, 1] - kp[:, 0], axis=1, keepdims=True)
+            rel = d.obs["agent_pos"] - pos
+            local = np.stack([rel[:, 0] * u[:, 0] + rel[:, 1] * u[:, 1], -rel[:, 0] * u[:, 1] + rel[:, 1] * u[:, 0]], 1)
+            ax.plot(local[:, 0], local[:, 1], color=color, lw=0.6, alpha=0.6)
+        ax.plot([], [], color=color, label=op)
+    ax.set_aspect("equal")
+    ax.set_xlim(-250, 250)
+    ax.set_ylim(-200, 300)
+    ax.set_title("(b) agent paths in the block's frame")
+    ax.legend(fontsize=8)
+    ax = axes[2]
+    names = list(spread)
+    xs = np.arange(len(names))
+    ax.bar(xs, [spread[n]["opposed_pair_fraction"] for n in names], 0.6)
+    ax.set_xticks(xs)
+    ax.set_xticklabels(names, rotation=30, ha="right", fontsize=8)
+    ax.set_title(f"(c) neighbours' moves > 90 deg apart ({args.k} nearest states, other demos)", fontsize=10)
+    fig.suptitle(f"pusht: scripted MH-style operators ({len(demos)} demos)")
+    fig.tight_layout()
+    fig_path = args.fig or REPO / "docs" / "pusht_mh_modes.png"
+    fig.savefig(fig_path, dpi=110)
+    out = {"provenance": provenance(), "task": "pusht", "data": str(args.data), "ph": str(args.ph) if args.ph else None,
+           "operators": per_op, "neighbour_action_spread": spread,
+           "units": "neighbours' action std in px of commanded move (target - agent position)"}
+    write_json(args.out or REPO / "results" / "experts" / "pusht_mh_modes.json", out)
+    print(f"wrote {fig_path}")
 
 
 def main(argv=None) -> None:
@@ -123,7 +232,7 @@ def main(argv=None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    demos = read_demos(args.data, OBS_KEYS)
+    demos = read_demos(args.data, TASKS[args.task].obs_keys)
     by_op: dict[str, list[Demo]] = defaultdict(list)
     for d in demos:
         by_op[str(d.attrs["operator"])].append(d)
@@ -133,6 +242,8 @@ def main(argv=None) -> None:
     success = {}
     if report_path.exists():
         success = {r["operator"]: r["success_rate"] for r in json.loads(report_path.read_text())["operators"]}
+    if args.task == "pusht":
+        return push_modes(args, demos, by_op, success)
 
     per_op, feats = {}, {}
     for op in ops:
