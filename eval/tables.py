@@ -17,7 +17,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, write_atomic  # noqa: E402
-from common.stats import paired_vs_dense, policy_of  # noqa: E402
+from common.stats import paired_score_difference, paired_vs_dense, policy_of  # noqa: E402
 from common import frontier  # noqa: E402
 from robot_suite.tasks import TASKS  # noqa: E402
 
@@ -139,6 +139,31 @@ def operators_table(folder: Path) -> str:
         r = json.loads(path.read_text())
         for name, v in r["neighbour_action_spread"].items():
             rows.append(f"| {r['task']} | {name} | {v['mean_action_std']:.3f} | {100 * v['opposed_pair_fraction']:.1f}% |")
+    return "\n".join(rows) + "\n"
+
+
+def coverage_table(folder: Path) -> str:
+    """Push-T's own score next to success: the mean best goal coverage per episode (Diffusion Policy
+    reports it) of dense and each few-step sampler, with the paired difference to dense on the same
+    episodes (mean and 95% t-interval)."""
+    runs: dict[tuple[str, str], list[dict]] = {}
+    for path in sorted(folder.glob("*.json")):
+        r = json.loads(path.read_text())
+        if r.get("mean_max_coverage") is not None and r["episodes_done"] == r["episodes_requested"] and \
+                (r["method"] == "dense" or FEW_STEP.match(r["method"])):
+            runs.setdefault((policy_of(r), r["method"]), []).append(r)
+    if not runs:
+        return "No Push-T runs yet (recipes/pusht_testbed.sh).\n"
+    rows = ["| policy | method | success | mean best coverage | vs dense, paired (95% CI, episodes) |",
+            "|---|---|---|---|---|"]
+    for (policy, method) in sorted(runs, key=lambda pm: (pm[0], _few_step_key(pm[1]))):
+        rs = runs[(policy, method)]
+        n = sum(r["episodes_done"] for r in rs)
+        succ = sum(r["success_rate"] * r["episodes_done"] for r in rs) / n
+        cov = sum(r["mean_max_coverage"] * r["episodes_done"] for r in rs) / n
+        diff = None if method == "dense" else paired_score_difference(rs, runs.get((policy, "dense"), []))
+        paired = "-" if diff is None else f"{diff[0]:+.3f} ({diff[1]:+.3f}, {diff[2]:+.3f}; {diff[3]})"
+        rows.append(f"| {policy} | `{method}` | {succ:.2f} ({n}) | {cov:.3f} | {paired} |")
     return "\n".join(rows) + "\n"
 
 
@@ -461,7 +486,8 @@ def main() -> None:
                              "rollout-age": rollout_age_table(robot),
                              "runs": robot_table(robot)})
     fill(docs / "testbed.md", {"steps": steps_table(robot), "table7": table7(robot), "operators": operators_table(REPO / "results" / "experts"),
-                                "push-operators": push_operators_table(REPO / "results" / "experts")})
+                                "push-operators": push_operators_table(REPO / "results" / "experts"),
+                                "coverage": coverage_table(robot)})
     readme = {"headline-robot": headline_robot(robot)}
     if any(image.glob("digits_*.json")):
         sample_grids(image)

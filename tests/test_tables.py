@@ -98,3 +98,36 @@ def test_table7_rows_pool_test_seeds_per_policy_and_skip_validation(tmp_path):
     assert row["rollout only (pruner, scratch)"].startswith("0.50 (4); -0.250 (")
     assert row["searched static steps"].startswith("1.00 (4); +0.250 (")
     assert row["omni (pruner, scratch)"] == "-"
+
+
+def test_paired_score_difference_uses_shared_episodes_and_a_t_interval():
+    from common.stats import paired_score_difference
+
+    def scored(values, first=0):
+        return [{"episodes": [{"seed": first + i, "max_coverage": v} for i, v in enumerate(values)]}]
+
+    assert paired_score_difference(scored([0.5]), scored([0.2])) is None  # one shared episode: no interval
+    mean, lo, hi, n = paired_score_difference(scored([0.5, 0.7, 0.9, 0.4]), scored([0.3, 0.7, 0.5, 0.2, 0.9]))
+    assert n == 4 and mean == pytest.approx(0.2)  # the fifth episode ran only once: left out
+    assert lo == pytest.approx(0.2 - 1.96 * 0.16329931618554525 / 2) and hi == pytest.approx(0.2 + 1.96 * 0.16329931618554525 / 2)
+
+
+def test_coverage_table_pairs_each_sampler_with_dense_of_the_same_policy(tmp_path):
+    import json
+
+    import tables
+
+    def write(method, cov, seed=400000):
+        eps = [{"seed": seed + i, "success": c > 0.95, "max_coverage": c} for i, c in enumerate(cov)]
+        doc = {"task": "pusht", "checkpoint": "checkpoints/pusht_mh_dpt", "method": method, "episodes_requested": len(eps),
+               "episodes_done": len(eps), "success_rate": sum(e["success"] for e in eps) / len(eps),
+               "mean_max_coverage": sum(cov) / len(cov), "provenance": {"seeds": [e["seed"] for e in eps]},
+               "episodes": eps}
+        (tmp_path / f"{method.replace(':', '-')}.json").write_text(json.dumps(doc))
+
+    assert "No Push-T runs" in tables.coverage_table(tmp_path)
+    write("dense", [0.96, 0.5, 0.7])
+    write("ddim:3", [0.5, 0.4, 0.6])
+    rows = tables.coverage_table(tmp_path).strip().splitlines()[2:]
+    assert rows[0].startswith("| pusht (pusht_mh_dpt), validation | `dense` | 0.33 (3) | 0.720 | - |")
+    assert "| `ddim:3` | 0.00 (3) | 0.500 | -0.220 (" in rows[1] and rows[1].endswith("; 3) |")

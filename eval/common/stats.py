@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Optional
 
 __all__ = ["VALIDATION_SEEDS", "policy_of", "paired_counts", "paired_vs_dense", "wilson", "newcombe_paired",
            "sign_test_p"]
@@ -90,3 +91,17 @@ def sign_test_p(b: int, c: int) -> float:
         return 1.0
     tail = sum(math.comb(m, k) for k in range(min(b, c) + 1)) / 2 ** m
     return min(1.0, 2 * tail)
+
+
+def paired_score_difference(runs: list[dict], other: list[dict], key: str = "max_coverage") -> Optional[tuple[float, float, float, int]]:
+    """Mean difference of a per-episode score (``runs`` minus ``other``) on the episodes both ran,
+    with a 95% t-interval: (mean, low, high, episodes); None without shared scored episodes."""
+    a = {e["seed"]: e[key] for r in runs for e in r["episodes"] if key in e}
+    b = {e["seed"]: e[key] for r in other for e in r["episodes"] if key in e}
+    d = [a[s] - b[s] for s in a if s in b]
+    if len(d) < 2:
+        return None
+    mean = sum(d) / len(d)
+    sd = (sum((x - mean) ** 2 for x in d) / (len(d) - 1)) ** 0.5
+    half = 1.96 * sd / len(d) ** 0.5
+    return mean, mean - half, mean + half, len(d)
