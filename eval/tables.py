@@ -110,6 +110,14 @@ def steps_table(folder: Path) -> str:
         wins = [e["env_steps"] for r in runs.get((policy, "dense"), []) for e in r["episodes"] if e["success"]]
         pace = f"{statistics.median(wins):.0f} ({TASKS[runs[(policy, 'dense')][0]['task']].horizon})" if wins else "-"
         rows.append(f"| {policy} | " + " | ".join(cells) + f" | {gap} | {pace} |")
+    rows += ["", "Median env steps of a successful episode (how fast each sampler's policy solves the task):", "",
+             "| policy | " + " | ".join(f"`{m}`" for m in methods) + " |", "|---|" + "---|" * len(methods)]
+    for policy in sorted({p for p, _ in runs}):
+        cells = []
+        for m in methods:
+            wins = [e["env_steps"] for r in runs.get((policy, m), []) for e in r["episodes"] if e["success"]]
+            cells.append(f"{statistics.median(wins):.0f}" if wins else "-")
+        rows.append(f"| {policy} | " + " | ".join(cells) + " |")
     return "\n".join(rows) + "\n"
 
 
