@@ -39,7 +39,10 @@ from tts.trajectories import load_trajectories, obs_dict  # noqa: E402
 
 def policy_calibration(args):
     """Dense calls of the policy on recorded observation windows of the training trajectories."""
-    episodes, _ = load_trajectories(args.trajectories)
+    episodes, _ = load_trajectories(args.trajectories, successful_only=not args.all_episodes)
+    if not episodes:
+        raise SystemExit(f"{args.trajectories} holds no successful episode; --all-episodes calibrates on the "
+                         "states of every recorded episode (the target is the dense policy's own output either way)")
     windows = np.concatenate([e["obs"] for e in episodes[:args.episodes]])
     rng = np.random.default_rng(args.seed)
     pick = rng.choice(len(windows), size=min(args.calls, len(windows)), replace=False)
@@ -105,6 +108,9 @@ def main(argv=None) -> dict:
                          "policy's DDPM-100); evaluate it as file:SCHEDULE+ddim:K")
     ap.add_argument("--sparsity", type=float, nargs="+", default=[0.93])
     ap.add_argument("--episodes", type=int, default=32, help="calibration episodes (from the start of the file)")
+    ap.add_argument("--all-episodes", action="store_true",
+                    help="calibrate on every recorded episode, not only the successful ones (for a policy that "
+                         "rarely succeeds; the target is the dense policy's output either way)")
     ap.add_argument("--calls", type=int, default=64, help="calibration policy calls (spread over the episodes)")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0)
@@ -143,6 +149,7 @@ def main(argv=None) -> dict:
             "model": str(args.dit or args.checkpoint), "trajectories": str(args.trajectories),
             "calibration_episodes": args.episodes, "calibration_calls": args.calls,
             "calibration_calls_used": n_calls,  # --calls, capped by the windows of --episodes
+            "calibration_on": "every recorded episode" if args.all_episodes else "successful episodes",
             "sparsity": rho, "realised_sparsity": float((grid != 0).float().mean()),
             "sampler": args.sampler or "the policy's own",
             "directions": ["timestep"],

@@ -52,8 +52,10 @@ train_named() {
 
 # search_steps OUT RHO [SEARCH_ARGS...]: whole compute steps placed by output L1 (eval/search_static.py)
 # at sparsity RHO on CALLS calibration calls (default 64), written to OUT unless it exists.
+# CALIBRATE_ALL=1: calibrate on every recorded episode (a policy that rarely succeeds, e.g. Push-T's).
 search_steps() {
   local out=$1 rho=$2; shift 2
+  [ -z "${CALIBRATE_ALL:-}" ] || set -- "$@" --all-episodes
   [ -f "$out" ] || python eval/search_static.py --checkpoint "$CKPT" --trajectories "$TRAJ" --sparsity "$rho" \
       --objective output --calls "${CALLS:-64}" --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$out" "$@"
 }

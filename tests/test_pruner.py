@@ -520,3 +520,23 @@ def test_output_search_on_recorded_windows_records_the_calls_it_used(tmp_path):
     computes = [row for row in doc["grid"] if set(row) == {"C"}]
     assert doc["grid"][0] == "C" * len(doc["grid"][0]) and len(computes) == 3  # 6 steps at 50%, step 0 included
     assert all(set(row) in ({"C"}, {"T"}) for row in doc["grid"])  # whole steps: every branch alike
+
+
+def test_output_search_of_a_policy_that_never_succeeds_needs_all_episodes(tmp_path):
+    """A weak policy's trajectories hold no success: the search says so, and --all-episodes
+    calibrates on every recorded state (recorded in the schedule)."""
+    import json
+
+    import search_static
+    from tts.trajectories import load_trajectories, save_trajectories
+
+    _toy_policy_and_trajectories(tmp_path, [3])
+    episodes, meta = load_trajectories(tmp_path / "traj.pt")
+    save_trajectories(tmp_path / "traj.pt", [{**e, "success": False} for e in episodes], meta)
+    args = ["--checkpoint", str(tmp_path / "policy"), "--trajectories", str(tmp_path / "traj.pt"), "--sparsity", "0.5",
+            "--objective", "output", "--shifts", "1", "--sweeps", "1", "--out", str(tmp_path / "steps.json")]
+    with pytest.raises(SystemExit, match="no successful episode"):
+        search_static.main(args)
+    search_static.main(args + ["--all-episodes"])
+    doc = json.loads((tmp_path / "steps.json").read_text())
+    assert doc["calibration_on"] == "every recorded episode" and doc["calibration_calls_used"] == 3
