@@ -117,17 +117,20 @@ def test_coverage_table_pairs_each_sampler_with_dense_of_the_same_policy(tmp_pat
 
     import tables
 
-    def write(method, cov, seed=400000):
+    def write(method, cov, steps, seed=400000):
         eps = [{"seed": seed + i, "success": c > 0.95, "max_coverage": c} for i, c in enumerate(cov)]
         doc = {"task": "pusht", "checkpoint": "checkpoints/pusht_mh_dpt", "method": method, "episodes_requested": len(eps),
-               "episodes_done": len(eps), "success_rate": sum(e["success"] for e in eps) / len(eps),
+               "episodes_done": len(eps), "success_rate": sum(e["success"] for e in eps) / len(eps), "batch": 2,
+               "tts": {"calls": 5, "num_branches": 24, "decision_counts": {"compute": steps * 5 * 2 * 24}},
                "mean_max_coverage": sum(cov) / len(cov), "provenance": {"seeds": [e["seed"] for e in eps]},
                "episodes": eps}
         (tmp_path / f"{method.replace(':', '-')}.json").write_text(json.dumps(doc))
 
     assert "No Push-T runs" in tables.coverage_table(tmp_path)
-    write("dense", [0.96, 0.5, 0.7])
-    write("ddim:3", [0.5, 0.4, 0.6])
+    write("ddim:3", [0.5, 0.4, 0.6], 3)
+    write("uniform:0.93:timestep", [0.6, 0.5, 0.7], 7)
+    write("dense", [0.96, 0.5, 0.7], 100)
     rows = tables.coverage_table(tmp_path).strip().splitlines()[2:]
-    assert rows[0].startswith("| pusht (pusht_mh_dpt), validation | `dense` | 0.33 (3) | 0.720 | - |")
-    assert "| `ddim:3` | 0.00 (3) | 0.500 | -0.220 (" in rows[1] and rows[1].endswith("; 3) |")
+    assert rows[0].startswith("| pusht (pusht_mh_dpt), validation | `dense` | 100.0 | 0.33 (3) | 0.720 | - |")
+    assert "| `uniform:0.93:timestep` | 7.0 | 0.00 (3) | 0.600 | -0.120 (" in rows[1]  # by computed steps
+    assert "| `ddim:3` | 3.0 | 0.00 (3) | 0.500 | -0.220 (" in rows[2] and rows[2].endswith("; 3) |")
