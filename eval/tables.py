@@ -170,8 +170,23 @@ def coverage_table(folder: Path) -> str:
     if not runs:
         return "No Push-T runs yet (recipes/pusht_testbed.sh).\n"
     rows = ["| policy | method | computed steps per call | success | mean best coverage | vs dense, paired "
-            "(95% CI, episodes) |", "|---|---|---|---|---|---|"]
+            "(95% CI, episodes) | vs the best fewer-step sampler computing no more, paired |", "|---|---|---|---|---|---|---|"]
     order = {k: (k[0], -computed_steps(v[0]), k[1]) for k, v in runs.items()}
+
+    def coverage(key):
+        return sum(r["mean_max_coverage"] * r["episodes_done"] for r in runs[key]) / sum(r["episodes_done"] for r in runs[key])
+
+    def vs_best_sampler(policy: str, method: str) -> str:
+        if method == "dense" or FEW_STEP.match(method):
+            return "-"
+        budget = computed_steps(runs[(policy, method)][0]) + 1e-6
+        samplers = [k for k in runs if k[0] == policy and FEW_STEP.match(k[1]) and computed_steps(runs[k][0]) <= budget]
+        if not samplers:
+            return "-"
+        best = max(samplers, key=coverage)
+        d = paired_score_difference(runs[(policy, method)], runs[best])
+        return "-" if d is None else f"`{best[1]}`: {d[0]:+.3f} ({d[1]:+.3f}, {d[2]:+.3f})"
+
     for (policy, method) in sorted(runs, key=order.get):
         rs = runs[(policy, method)]
         n = sum(r["episodes_done"] for r in rs)
@@ -179,7 +194,8 @@ def coverage_table(folder: Path) -> str:
         cov = sum(r["mean_max_coverage"] * r["episodes_done"] for r in rs) / n
         diff = None if method == "dense" else paired_score_difference(rs, runs.get((policy, "dense"), []))
         paired = "-" if diff is None else f"{diff[0]:+.3f} ({diff[1]:+.3f}, {diff[2]:+.3f}; {diff[3]})"
-        rows.append(f"| {policy} | `{method}` | {computed_steps(rs[0]):.1f} | {succ:.2f} ({n}) | {cov:.3f} | {paired} |")
+        rows.append(f"| {policy} | `{method}` | {computed_steps(rs[0]):.1f} | {succ:.2f} ({n}) | {cov:.3f} | {paired} "
+                    f"| {vs_best_sampler(policy, method)} |")
     return "\n".join(rows) + "\n"
 
 

@@ -133,4 +133,5 @@ def test_coverage_table_pairs_each_sampler_with_dense_of_the_same_policy(tmp_pat
     rows = tables.coverage_table(tmp_path).strip().splitlines()[2:]
     assert rows[0].startswith("| pusht (pusht_mh_dpt), validation | `dense` | 100.0 | 0.33 (3) | 0.720 | - |")
     assert "| `uniform:0.93:timestep` | 7.0 | 0.00 (3) | 0.600 | -0.120 (" in rows[1]  # by computed steps
-    assert "| `ddim:3` | 3.0 | 0.00 (3) | 0.500 | -0.220 (" in rows[2] and rows[2].endswith("; 3) |")
+    assert rows[1].endswith("| `ddim:3`: +0.100 (+0.100, +0.100) |")  # the best sampler computing <= 7 steps
+    assert "| `ddim:3` | 3.0 | 0.00 (3) | 0.500 | -0.220 (" in rows[2] and rows[2].endswith("; 3) | - |")
