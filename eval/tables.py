@@ -87,9 +87,8 @@ def steps_table(folder: Path) -> str:
                 (r["method"] == "dense" or FEW_STEP.match(r["method"])):
             runs.setdefault((policy_of(r), r["method"]), []).append(r)
     methods = sorted({m for _, m in runs}, key=_few_step_key)
-    rows = ["| policy | " + " | ".join(f"`{m}`" for m in methods) + " | dense - best 3-step | dense: median steps "
-            "of a success (horizon) |",
-            "|---|" + "---|" * (len(methods) + 2)]
+    rows = ["| policy | " + " | ".join(f"`{m}`" for m in methods) + " | dense - best 3-step |",
+            "|---|" + "---|" * (len(methods) + 1)]
 
     def pooled(policy: str, m: str):
         rs = runs.get((policy, m))
@@ -107,17 +106,16 @@ def steps_table(folder: Path) -> str:
         three = [pooled(policy, m)[0] for m in methods if m != "dense" and _few_step_key(m)[2] == 3]
         three = [x for x in three if x is not None]
         gap = f"{dense - max(three):+.2f}" if dense is not None and three else "-"
-        wins = [e["env_steps"] for r in runs.get((policy, "dense"), []) for e in r["episodes"] if e["success"]]
-        pace = f"{statistics.median(wins):.0f} ({TASKS[runs[(policy, 'dense')][0]['task']].horizon})" if wins else "-"
-        rows.append(f"| {policy} | " + " | ".join(cells) + f" | {gap} | {pace} |")
+        rows.append(f"| {policy} | " + " | ".join(cells) + f" | {gap} |")
     rows += ["", "Median env steps of a successful episode (how fast each sampler's policy solves the task):", "",
-             "| policy | " + " | ".join(f"`{m}`" for m in methods) + " |", "|---|" + "---|" * len(methods)]
+             "| policy (horizon) | " + " | ".join(f"`{m}`" for m in methods) + " |", "|---|" + "---|" * len(methods)]
     for policy in sorted({p for p, _ in runs}):
         cells = []
         for m in methods:
             wins = [e["env_steps"] for r in runs.get((policy, m), []) for e in r["episodes"] if e["success"]]
             cells.append(f"{statistics.median(wins):.0f}" if wins else "-")
-        rows.append(f"| {policy} | " + " | ".join(cells) + " |")
+        task = next(r["task"] for (p, _), rs in runs.items() if p == policy for r in rs)
+        rows.append(f"| {policy} ({TASKS[task].horizon}) | " + " | ".join(cells) + " |")
     return "\n".join(rows) + "\n"
 
 
@@ -191,7 +189,7 @@ def coverage_table(folder: Path) -> str:
         rs = runs[(policy, method)]
         n = sum(r["episodes_done"] for r in rs)
         succ = sum(r["success_rate"] * r["episodes_done"] for r in rs) / n
-        cov = sum(r["mean_max_coverage"] * r["episodes_done"] for r in rs) / n
+        cov = coverage((policy, method))
         diff = None if method == "dense" else paired_score_difference(rs, runs.get((policy, "dense"), []))
         paired = "-" if diff is None else f"{diff[0]:+.3f} ({diff[1]:+.3f}, {diff[2]:+.3f}; {diff[3]})"
         rows.append(f"| {policy} | `{method}` | {computed_steps(rs[0]):.1f} | {succ:.2f} ({n}) | {cov:.3f} | {paired} "
