@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, parse_args  # noqa: E402
+from common import REPO, add_all_episodes_option, parse_args, policy_slug  # noqa: E402
 from common import frontier as frontier_join  # noqa: E402
 from robot_suite.replay import replay  # noqa: E402
 
@@ -35,13 +35,6 @@ from tts.trajectories import REPLAY_KEYS, load_trajectories  # noqa: E402
 
 DOCS = REPO / "docs"
 COLORS = ["#1b1b1b", "#e6550d", "#3182bd", "#31a354"]  # compute, forward, timestep, rollout
-
-
-def _policy_slug(args) -> str:
-    """``task`` for the bundled ``checkpoints/<task>_dpt``, else ``task-<checkpoint name>`` (figures of
-    different policies never overwrite each other)."""
-    name = Path(args.checkpoint).name if args.checkpoint is not None else f"{args.task}_dpt"
-    return args.task if name == f"{args.task}_dpt" else f"{args.task}-{name}"
 
 
 def _plt():
@@ -57,7 +50,7 @@ def masks(args) -> Path:
     from matplotlib.colors import ListedColormap
 
     plt = _plt()
-    episodes, _ = load_trajectories(args.trajectories)
+    episodes, _ = load_trajectories(args.trajectories, successful_only=not args.all_episodes)
     ep = episodes[args.first_episode]
     policy = load_policy(args.checkpoint)
     pruner = tts.load_pruner(args.pruner)
@@ -81,7 +74,7 @@ def masks(args) -> Path:
     fig.suptitle(f"{args.task}: pruner decisions per rollout iteration ({Path(args.pruner).name}, {mode}; "
                  f"held-out episode seed {ep['seed']})", fontsize=9)
     fig.tight_layout(rect=(0, 0.06, 1, 0.95))
-    out = DOCS / f"{_policy_slug(args)}_pruning_masks.png"
+    out = DOCS / f"{policy_slug(args.task, args.checkpoint)}_pruning_masks.png"
     fig.savefig(out, dpi=110)
     return out
 
@@ -93,7 +86,7 @@ def _cos(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def similarity(args) -> Path:
     plt = _plt()
-    episodes, _ = load_trajectories(args.trajectories)
+    episodes, _ = load_trajectories(args.trajectories, successful_only=not args.all_episodes)
     eps = episodes[args.first_episode:args.first_episode + args.episodes]
     policy = load_policy(args.checkpoint)
     n_frames = min(len(e["obs"]) for e in eps)
@@ -131,7 +124,7 @@ def similarity(args) -> Path:
     fig.suptitle(f"{args.task}: cosine similarity of branch outputs with what each direction would reuse "
                  f"({len(eps)} held-out episodes x {n_frames} calls, dense policy)", fontsize=9)
     fig.tight_layout()
-    out = DOCS / f"{_policy_slug(args)}_feature_similarity.png"
+    out = DOCS / f"{policy_slug(args.task, args.checkpoint)}_feature_similarity.png"
     fig.savefig(out, dpi=110)
     return out
 
@@ -251,7 +244,7 @@ def frontier(args) -> Path:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
-    out = DOCS / f"frontier_{_policy_slug(args)}.png"
+    out = DOCS / f"frontier_{policy_slug(args.task, args.checkpoint)}.png"
     fig.savefig(out, dpi=120)
     plt.close(fig)
     return out
@@ -268,6 +261,7 @@ def main(argv=None) -> None:
     ap.add_argument("--first-episode", type=int, default=-8, help="first held-out episode (negative: from the end)")
     ap.add_argument("--episodes", type=int, default=4, help="similarity: episodes")
     ap.add_argument("--calls", type=int, default=6, help="masks: rollout iterations shown")
+    add_all_episodes_option(ap)
     args = parse_args(ap, argv)
     DOCS.mkdir(exist_ok=True)
     fn = {"masks": masks, "similarity": similarity, "data-efficiency": data_efficiency, "frontier": frontier}[args.figure]

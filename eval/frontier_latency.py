@@ -26,18 +26,12 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, provenance, write_json, parse_args  # noqa: E402
+from common import REPO, parse_args, policy_slug, provenance, write_json  # noqa: E402
 from common.methods import ROBOT_KINDS, VOCABULARY, install_policy, parse_method  # noqa: E402
 from common.policy_timing import batch_frames, computed_steps, time_calls  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 from tts.trajectories import load_trajectories  # noqa: E402
-
-
-def policy_name(task: str, checkpoint: Path) -> str:
-    """``task`` for the bundled ``checkpoints/<task>_dpt``, else ``task-<checkpoint name>`` (as robot.py)."""
-    name = Path(checkpoint).name
-    return task if name == f"{task}_dpt" else f"{task}-{name}"
 
 
 def main(argv=None) -> dict:
@@ -61,7 +55,7 @@ def main(argv=None) -> dict:
     labels = [m.label for m in methods]
     if len(set(labels)) != len(labels):
         ap.error(f"a method is listed twice: {labels}")
-    out = args.out or REPO / "results" / "robot" / f"frontier_latency_{policy_name(args.task, args.checkpoint)}.json"
+    out = args.out or REPO / "results" / "robot" / f"frontier_latency_{policy_slug(args.task, args.checkpoint)}.json"
     rows: dict[str, dict] = {}
     if args.resume and out.exists():
         rows = {f"{r['method']}@{r['batch']}": r for r in json.loads(out.read_text())["rows"]}
@@ -105,7 +99,7 @@ def main(argv=None) -> dict:
             acc.calls.clear()
         res = {
             "provenance": provenance(seeds={"noise": "1000 * trial + frame"}),
-            "task": args.task, "checkpoint": str(args.checkpoint), "policy": policy_name(args.task, args.checkpoint),
+            "task": args.task, "checkpoint": str(args.checkpoint), "policy": policy_slug(args.task, args.checkpoint),
             "trajectories": str(args.trajectories), "episodes_from": args.first_episode,
             "torch_threads": torch.get_num_threads(),
             "protocol": "per batch size: every method and dense timed on the same windows, order rotated per "

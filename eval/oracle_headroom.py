@@ -30,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, parse_args, provenance, write_json  # noqa: E402
+from common import REPO, add_all_episodes_option, parse_args, provenance, write_json  # noqa: E402
 
 import tts  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
@@ -95,12 +95,14 @@ def main(argv=None) -> dict:
     ap.add_argument("--shifts", default="1,2,4,8")
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--out", type=Path, default=None)
+    add_all_episodes_option(ap)
     args = parse_args(ap, argv)
     sched = json.loads(args.schedule.read_text())
     if "compute_steps" not in sched:
         raise ValueError(f"{args.schedule} holds no compute_steps (search it with --objective output)")
     first = args.first_episode if args.first_episode is not None else (89 if args.task == "can" else 96)
-    held_out, n_episodes = held_out_episodes(args.trajectories, first)
+    every = args.all_episodes or sched.get("calibration_on") == "every recorded episode"  # as the search did
+    held_out, n_episodes = held_out_episodes(args.trajectories, first, successful_only=not every)
     windows = np.concatenate([e["obs"] for e in held_out])
     seeds = np.concatenate([e["noise_seed"] for e in held_out])
     pick = np.linspace(0, len(windows) - 1, min(args.calls, len(windows))).round().astype(int)

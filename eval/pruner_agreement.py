@@ -16,11 +16,12 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Optional
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, parse_args, provenance, write_json  # noqa: E402
+from common import REPO, add_all_episodes_option, parse_args, provenance, write_json  # noqa: E402
 from robot_suite.replay import replay  # noqa: E402
 
 import tts  # noqa: E402
@@ -30,10 +31,12 @@ from tts.trajectories import held_out_episodes  # noqa: E402
 from tts.training import read_grid  # noqa: E402
 
 
-def agreement(calls, prior: torch.Tensor) -> dict:
-    """Counts of accelerated calls / decisions equal to ``prior`` [K, nb] (dense calls skipped)."""
+def agreement(calls, prior: torch.Tensor, weights: Optional[list[torch.Tensor]] = None) -> dict:
+    """Counts of accelerated calls / decisions equal to ``prior`` [K, nb] (dense calls skipped);
+    ``weights`` (one [B] tensor per call, 0 for the padding of an episode that already ended in a
+    lockstep replay) leaves out the padded samples."""
     n_calls = same_calls = n_dec = same_dec = 0
-    for call in calls:
+    for i, call in enumerate(calls):
         if call.dense:
             continue
         d = call.decisions()  # [K, B, nb]
@@ -41,10 +44,12 @@ def agreement(calls, prior: torch.Tensor) -> dict:
             raise ValueError(f"decisions {tuple(d.shape)} do not fit the prior grid {tuple(prior.shape)}")
         eq = d == prior[:, None, :]
         for b in range(d.shape[1]):
+            if weights is not None and not weights[i][b]:
+                continue
             n_calls += 1
             same_calls += int(eq[:, b].all())
-        n_dec += eq.numel()
-        same_dec += int(eq.sum())
+            n_dec += eq[:, b].numel()
+            same_dec += int(eq[:, b].sum())
     return {"calls": n_calls, "calls_identical": same_calls, "decisions": n_dec, "decisions_identical": same_dec,
             "calls_identical_fraction": same_calls / max(n_calls, 1),
             "decisions_identical_fraction": same_dec / max(n_dec, 1)}
@@ -61,6 +66,7 @@ def main(argv=None) -> dict:
                     help="first held-out episode (default: the pruner's n_train)")
     ap.add_argument("--batch", type=int, default=8, help="episodes replayed in lockstep")
     ap.add_argument("--out", type=Path, default=None)
+    add_all_episodes_option(ap)
     args = parse_args(ap, argv)
     meta = json.loads(checkpoint_pair(args.pruner)[1].read_text())["metadata"]
     if not meta.get("prior"):
@@ -68,17 +74,18 @@ def main(argv=None) -> dict:
     first = args.first_episode
     if first is None:
         first = int(meta.get("n_train_episodes", meta["n_train"]))
-    held_out, n_episodes = held_out_episodes(args.trajectories, first)
+    every = args.all_episodes or meta.get("all_episodes", False)  # the episodes the pruner was trained on
+    held_out, n_episodes = held_out_episodes(args.trajectories, first, successful_only=not every)
     policy = load_policy(args.checkpoint)
     pruner = tts.load_pruner(args.pruner)
-    calls = []
+    calls, weights = [], []
     with tts.accelerate(policy, pruner.config.directions, pruner=pruner, sparsity=args.sparsity) as acc:
         for i in range(0, len(held_out), args.batch):
             acc.calls.clear()
-            replay(policy, held_out[i:i + args.batch])
+            replay(policy, held_out[i:i + args.batch], lambda frame: weights.append(frame.weight))
             calls += acc.summary().calls
         prior = read_grid(meta["prior"], *calls[-1].decisions()[:, 0].shape, reuse=meta.get("prior_reuse"))
-        res = agreement(calls, prior)
+        res = agreement(calls, prior, weights)
     res.update(task=args.task, pruner=str(args.pruner), prior=meta["prior"], sparsity=args.sparsity,
                episodes=f"{first}..{n_episodes - 1}", trajectories=str(args.trajectories),
                provenance=provenance(seeds={"noise": "recorded per call"}))

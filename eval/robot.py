@@ -34,7 +34,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, provenance, write_json, parse_args  # noqa: E402
+from common import REPO, parse_args, policy_slug, provenance, write_json  # noqa: E402
 from common import methods  # noqa: E402
 from common.methods import ROBOT_KINDS, VOCABULARY, Method, parse_method  # noqa: E402
 
@@ -43,13 +43,6 @@ from tts.io import checkpoint_pair  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 from robot_suite.rollout import run_wave  # noqa: E402
 from robot_suite.tasks import TASKS, make_env  # noqa: E402
-
-
-def run_prefix(task: str, checkpoint: Path) -> str:
-    """Result files start with the task, plus the policy's name when it is not the bundled
-    ``checkpoints/<task>_dpt``: runs of different policies never share a file."""
-    name = Path(checkpoint).name
-    return task if name == f"{task}_dpt" else f"{task}-{name}"
 
 
 def main(argv=None) -> dict:
@@ -73,7 +66,7 @@ def main(argv=None) -> dict:
         ap.error(str(e))
     torch.manual_seed(args.seed)
     label = method.label
-    prefix = run_prefix(args.task, args.checkpoint)
+    prefix = policy_slug(args.task, args.checkpoint)
     out = args.out or REPO / "results" / "robot" / f"{prefix}_{method.slug}_{args.seed}.json"
     seeds = list(range(args.seed, args.seed + args.episodes))
     done: dict[int, dict] = {}

@@ -8,7 +8,8 @@ output of the last call that computed it, not necessarily the previous call's. E
 held-out recorded episodes (index >= ``--first-episode``, past the pruners' training and validation
 sets) one episode at a time with their recorded observations and noise, and
 ``Summary.rollout_ages`` gives the age of every rollout decision (1 = the previous call's output).
-Writes ``results/robot/rollout_age_<task>.json`` (one entry per method, merged with earlier runs).
+Writes ``results/robot/rollout_age_<policy>.json`` (the task, plus the checkpoint's name unless it is the
+bundled one) (one entry per method, merged with earlier runs).
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, parse_args, provenance, write_json  # noqa: E402
+from common import REPO, add_all_episodes_option, parse_args, policy_slug, provenance, write_json  # noqa: E402
 from common.methods import ROBOT_KINDS, VOCABULARY, install, parse_method  # noqa: E402
 from robot_suite.replay import replay  # noqa: E402
 
@@ -60,13 +61,14 @@ def main(argv=None) -> dict:
                     help="first held-out episode (default: 96 for Lift, 89 for Can, as the table's pruners)")
     ap.add_argument("--episodes", type=int, default=16)
     ap.add_argument("--out", type=Path, default=None)
+    add_all_episodes_option(ap)
     args = parse_args(ap, argv)
     methods = [parse_method(m, kinds=ROBOT_KINDS) for m in args.methods]
     first = args.first_episode if args.first_episode is not None else (89 if args.task == "can" else 96)
-    episodes, _ = held_out_episodes(args.trajectories, first)
+    episodes, _ = held_out_episodes(args.trajectories, first, successful_only=not args.all_episodes)
     episodes = episodes[:args.episodes]
     policy = load_policy(args.checkpoint)
-    out = args.out or REPO / "results" / "robot" / f"rollout_age_{args.task}.json"
+    out = args.out or REPO / "results" / "robot" / f"rollout_age_{policy_slug(args.task, args.checkpoint)}.json"
     res = json.loads(out.read_text()) if out.exists() else {"task": args.task, "methods": {}}
     for method in methods:
         stats = ages_of(policy, method, episodes)

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import provenance, write_json, parse_args  # noqa: E402
+from common import add_all_episodes_option, parse_args, provenance, write_json  # noqa: E402
 from common.methods import ROBOT_KINDS, parse_method  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
@@ -108,9 +108,7 @@ def main(argv=None) -> dict:
                          "policy's DDPM-100); evaluate it as file:SCHEDULE+ddim:K")
     ap.add_argument("--sparsity", type=float, nargs="+", default=[0.93])
     ap.add_argument("--episodes", type=int, default=32, help="calibration episodes (from the start of the file)")
-    ap.add_argument("--all-episodes", action="store_true",
-                    help="calibrate on every recorded episode, not only the successful ones (for a policy that "
-                         "rarely succeeds; the target is the dense policy's output either way)")
+    add_all_episodes_option(ap)
     ap.add_argument("--calls", type=int, default=64, help="calibration policy calls (spread over the episodes)")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0)

@@ -256,8 +256,13 @@ def reuse_cost_table(folder: Path) -> str:
 
 
 TABLE7_ROWS = (("dense", "dense"), ("DDIM-7 (leading)", "ddim:7"), ("DDIM-3 (leading)", "ddim:3"),
-               ("DDIM-3 (trailing)", "ddim:3:trailing"), ("DPM-Solver++-3", "dpm:3"),
+               ("DDIM-3 (trailing)", "ddim:3:trailing"), ("DPM-Solver++-3", "dpm:3"), ("DPM-Solver++-7", "dpm:7"),
                ("searched static steps", "file:{p}_steps_0.93"),
+               ("forward only (uniform static)", "uniform:0.93:forward"),
+               ("timestep only (uniform static)", "uniform:0.93:timestep"),
+               ("rollout only (uniform static: slots from the episode's first call)", "uniform:0.93:rollout"),
+               ("rollout only (rotating static: slots refreshed)", "rotating:0.93:rollout"),
+               ("searched steps, rollout at steps 0-49, timestep after", "file:{p}_steps_0.93_rollout_early"),
                ("forward only (pruner, scratch)", "pruner:{p}_reference_forward_0.93"),
                ("timestep only (pruner, scratch)", "pruner:{p}_reference_timestep_0.93"),
                ("rollout only (pruner, scratch)", "pruner:{p}_reference_rollout_0.93"),
@@ -266,28 +271,35 @@ TABLE7_ROWS = (("dense", "dense"), ("DDIM-7 (leading)", "ddim:7"), ("DDIM-3 (lea
 
 
 def table7(folder: Path) -> str:
-    """The paper's Table 7 shape at 93% (recipes/table7.sh): per policy with reference-recipe pruners,
-    success on the test seeds and the paired difference to dense on the same episodes."""
+    """The paper's Table 7 shape at 93% (recipes/table7.sh): per policy with its static direction rows
+    or reference-recipe pruners, on the test seeds, the score and the paired difference to dense on the
+    same episodes: success, or for Push-T (whose policies rarely succeed) the mean best coverage."""
     runs: dict[tuple[str, str], list[dict]] = {}
     for path in sorted(folder.glob("*.json")):
         r = json.loads(path.read_text())
         if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
             runs.setdefault((policy_of(r), r["method"]), []).append(r)
-    policies = sorted({pol for pol, m in runs if "_reference_" in m and not pol.endswith("validation")})
+    policies = sorted({pol for pol, m in runs if ("_reference_" in m or m == "rotating:0.93:rollout")
+                       and not pol.endswith("validation")})
     if not policies:
-        return "No policy has reference-recipe pruner runs yet (recipes/table7.sh).\n"
+        return "No policy has Table 7 runs yet (recipes/table7.sh).\n"
     rows = ["| row | " + " | ".join(policies) + " |", "|---|" + "---|" * len(policies)]
     for label, pattern in TABLE7_ROWS:
         cells = []
         for pol in policies:
             slug = pol.replace(" (", "-").rstrip(")")
-            rs = runs.get((pol, pattern.format(p=slug)))
+            rs, dense = runs.get((pol, pattern.format(p=slug))), runs.get((pol, "dense"), [])
             if not rs:
                 cells.append("-")
                 continue
             n = sum(r["episodes_done"] for r in rs)
+            if rs[0].get("mean_max_coverage") is not None:
+                cov = sum(r["mean_max_coverage"] * r["episodes_done"] for r in rs) / n
+                d = None if pattern == "dense" else paired_score_difference(rs, dense)
+                cells.append(f"coverage {cov:.3f} ({n})" + ("" if d is None else f"; {d[0]:+.3f} ({d[1]:+.3f}, {d[2]:+.3f})"))
+                continue
             rate = sum(r["success_rate"] * r["episodes_done"] for r in rs) / n
-            paired = "" if pattern == "dense" else "; " + paired_vs_dense(rs, runs.get((pol, "dense"), [])).split(" on ")[0]
+            paired = "" if pattern == "dense" else "; " + paired_vs_dense(rs, dense).split(" on ")[0]
             cells.append(f"{rate:.2f} ({n}){paired}")
         rows.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(rows) + "\n"
@@ -348,17 +360,18 @@ def headroom_table(folder: Path) -> str:
 
 
 def rollout_age_table(folder: Path) -> str:
-    """Age in calls of the reused rollout slots (eval/rollout_age.py: rollout_age_<task>.json)."""
-    rows = ["| task | method | sparsity | reused rollout slots | mean age (calls) | median | max "
+    """Age in calls of the reused rollout slots (eval/rollout_age.py: rollout_age_<policy>.json)."""
+    rows = ["| policy | method | sparsity | reused rollout slots | mean age (calls) | median | max "
             "| from the previous call | git SHA |", "|---|---|---|---|---|---|---|---|---|"]
     for path in sorted(folder.glob("rollout_age_*.json")):
         r = json.loads(path.read_text())
+        pol = policy_of({"task": r["task"], "checkpoint": r.get("checkpoint", "")})
         for method, m in r["methods"].items():
             if not m["reused_slots"]:
-                rows.append(f"| {r['task']} | `{method}` | {m['sparsity']:.3f} | 0 | - | - | - | - | "
+                rows.append(f"| {pol} | `{method}` | {m['sparsity']:.3f} | 0 | - | - | - | - | "
                             f"`{m['provenance']['git_sha'][:10]}` |")
                 continue
-            rows.append(f"| {r['task']} | `{method}` | {m['sparsity']:.3f} | {m['reused_slots']} | "
+            rows.append(f"| {pol} | `{method}` | {m['sparsity']:.3f} | {m['reused_slots']} | "
                         f"{m['mean_calls']:.2f} | {m['median_calls']:.0f} | {m['max_calls']} | "
                         f"{100 * m['fraction_previous_call']:.1f}% | `{m['provenance']['git_sha'][:10]}` |")
     return "\n".join(rows) + "\n"

@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import parse_args  # noqa: E402
+from common import add_all_episodes_option, parse_args  # noqa: E402
 from common.training_args import add_training_args, training_metadata  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
@@ -59,13 +59,14 @@ def main(argv=None) -> None:
         ap.set_defaults(**{k: getattr(recipe, k) for k in ("hidden", "heads", "ffn", "lr", "weight_decay",
                                                            "lr_schedule", "clip_grad", "batch", "epochs")},
                         head_bias=",".join(str(b) for b in recipe.head_bias))
+    add_all_episodes_option(ap)
     args = parse_args(ap, argv)
     try:
         config = PolicyPrunerTrainingConfig.from_dict(vars(args))
     except ValueError as e:
         ap.error(str(e))
     torch.manual_seed(args.seed)  # before the policy is built: the pruner's initial weights follow it
-    episodes, traj_meta = load_trajectories(args.trajectories)
+    episodes, traj_meta = load_trajectories(args.trajectories, successful_only=not args.all_episodes)
     policy = load_policy(args.checkpoint)
     meta = training_metadata(args)
     meta.update(policy=str(args.checkpoint), trajectory_collection=traj_meta.get("command"))

@@ -6,7 +6,7 @@
 # DPM-Solver++-k (2 3 5 7); searched whole steps at 90-98% on DDPM-100; the TTS step pruner served at
 # those budgets; TTS on DDIM-20 and DDIM-10 bases at 7 computed steps (uniform and searched); the
 # BAC-style schedule, uniform and FORA-interval timestep reuse at 93%. Resumable; a full run is
-# several hours on 2 CPU cores (PARTS=success,latency,figures picks stages; CALIBRATE_ALL=1 searches on
+# several hours on 2 CPU cores (PARTS=success,latency,figures picks stages; ALL_EPISODES=1 searches on
 # every recorded episode, for a policy that rarely succeeds). Then python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"

@@ -41,21 +41,27 @@ robot_task() {
 # evaluate ROBOT_ARGS...: eval_seeds on the current robot_task's policy.
 evaluate() { eval_seeds --task "$TASK" --checkpoint "$CKPT" "$@"; }
 
+# all_episodes: --all-episodes when ALL_EPISODES=1, for the trajectory tools (search, pruner training,
+# agreement, headroom, figures) of a policy that rarely succeeds (e.g. Push-T's): they then use every
+# recorded episode instead of the successful ones.
+all_episodes() { [ -z "${ALL_EPISODES:-}" ] || echo --all-episodes; }
+
 # train_named NAME ARGS...: eval/train_pruner.py on the robot_task's trajectories (paired, resumable;
 # skipped when checkpoints/pruners/NAME exists); NTRAIN / NVAL (default 16) / EPOCHS set the sizes.
 train_named() {
   local name=$1; shift
   [ -f "checkpoints/pruners/$name.json" ] || python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
       --out "checkpoints/pruners/$name" --n-train "$NTRAIN" --n-val "${NVAL:-16}" --epochs "$EPOCHS" --paired --threads 2 \
-      --run-dir "runs/$name" --resume "$@"
+      --run-dir "runs/$name" --resume $(all_episodes) "$@"
 }
 
 # search_steps OUT RHO [SEARCH_ARGS...]: whole compute steps placed by output L1 (eval/search_static.py)
 # at sparsity RHO on CALLS calibration calls (default 64), written to OUT unless it exists.
-# CALIBRATE_ALL=1: calibrate on every recorded episode (a policy that rarely succeeds, e.g. Push-T's).
+# ALL_EPISODES=1: calibrate on every recorded episode.
 search_steps() {
   local out=$1 rho=$2; shift 2
-  [ -z "${CALIBRATE_ALL:-}" ] || set -- "$@" --all-episodes
+  # shellcheck disable=SC2046
+  set -- "$@" $(all_episodes)
   [ -f "$out" ] || python eval/search_static.py --checkpoint "$CKPT" --trajectories "$TRAJ" --sparsity "$rho" \
       --objective output --calls "${CALLS:-64}" --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$out" "$@"
 }
@@ -65,7 +71,7 @@ search_steps() {
 headroom() {
   local name=${1##*/}
   [ -f "results/robot/headroom_${TASK}_${name%.json}.json" ] || python eval/oracle_headroom.py --task "$TASK" \
-      --checkpoint "$CKPT" --trajectories "$TRAJ" --schedule "$1" --threads 2
+      --checkpoint "$CKPT" --trajectories "$TRAJ" --schedule "$1" --threads 2 $(all_episodes)
 }
 
 # latency METHOD: eval/latency.py at batch 1 and 28 against dense in one process (skipped when done).

@@ -94,7 +94,8 @@ def test_install_builds_the_plan_the_spec_names(tmp_path):
 
 
 def test_result_files_of_other_policies_never_collide_with_the_bundled_ones():
-    import robot
+    from common import policy_slug
 
-    assert robot.run_prefix("lift", Path("checkpoints/lift_dpt")) == "lift"
-    assert robot.run_prefix("lift", Path("checkpoints/lift_mh_dpt")) == "lift-lift_mh_dpt"
+    assert policy_slug("lift") == "lift"
+    assert policy_slug("lift", Path("checkpoints/lift_dpt")) == "lift"
+    assert policy_slug("lift", Path("checkpoints/lift_mh_dpt")) == "lift-lift_mh_dpt"

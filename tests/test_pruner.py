@@ -103,7 +103,7 @@ def test_episode_groups_and_split():
     assert episode_groups(eps, 3, None)[0][0] is eps[0]
     train, val = split_episodes(eps, 4, 2)
     assert len(train) == 4 and len(val) == 2 and val[0] is eps[4]
-    with pytest.raises(ValueError, match="only 7 successful"):
+    with pytest.raises(ValueError, match="only 7 usable"):
         split_episodes(eps, 6, 2)
     with pytest.raises(ValueError, match="at least one"):
         split_episodes(eps, 0, 2)
@@ -291,7 +291,7 @@ TRAIN_PRUNER_METADATA = {
     "prior_margin", "tie_branches", "step_query", "val_mode", "seed", "run_dir", "resume", "n_train", "n_val", "paired",
     "loss_space", "static", "head_bias", "init_schedule", "threads", "n_train_episodes", "n_val_episodes", "policy",
     "trajectory_collection", "best_epoch", "history", "train_seconds", "pruner_macs_per_call", "heads", "ffn",
-    "lr_schedule", "clip_grad", "recipe"}
+    "lr_schedule", "clip_grad", "recipe", "all_episodes"}
 
 
 def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
@@ -540,3 +540,40 @@ def test_output_search_of_a_policy_that_never_succeeds_needs_all_episodes(tmp_pa
     search_static.main(args + ["--all-episodes"])
     doc = json.loads((tmp_path / "steps.json").read_text())
     assert doc["calibration_on"] == "every recorded episode" and doc["calibration_calls_used"] == 3
+
+
+def test_pruner_tools_of_a_policy_that_never_succeeds_use_every_episode(tmp_path):
+    """Trajectories without a success (Push-T's weak policies): training says how to proceed, trains on
+    every episode with --all-episodes, and the agreement check then holds out from the same list (the
+    pruner's metadata says which), not from an empty list of successes."""
+    import json
+
+    import pruner_agreement
+    import search_static
+    import train_pruner
+    from tts.trajectories import held_out_episodes, load_trajectories, save_trajectories
+
+    _toy_policy_and_trajectories(tmp_path, [3, 4, 3, 4])
+    episodes, meta = load_trajectories(tmp_path / "traj.pt")
+    save_trajectories(tmp_path / "traj.pt", [{**e, "success": e["seed"] == 3} for e in episodes], meta)
+    traj, ckpt = str(tmp_path / "traj.pt"), str(tmp_path / "policy")
+    assert [e["seed"] for e in held_out_episodes(tmp_path / "traj.pt", 2, successful_only=False)[0]] == [2, 3]
+    with pytest.raises(ValueError, match="no held-out episodes"):
+        held_out_episodes(tmp_path / "traj.pt", 2)  # one success in all: index 2 is past it
+    steps = tmp_path / "steps.json"
+    search_static.main(["--checkpoint", ckpt, "--trajectories", traj, "--sparsity", "0.5", "--objective", "output",
+                        "--shifts", "1", "--sweeps", "1", "--out", str(steps), "--all-episodes"])
+    out = tmp_path / "pruner"
+    args = ["--trajectories", traj, "--checkpoint", ckpt, "--out", str(out), "--sparsity", "0.5", "--epochs", "1",
+            "--batch", "2", "--n-train", "2", "--n-val", "1", "--hidden", "16", "--prior", str(steps),
+            "--run-dir", str(tmp_path / "run")]
+    with pytest.raises(ValueError, match="only 1 usable trajectories"):
+        train_pruner.main(args)
+    train_pruner.main(args + ["--all-episodes"])
+    assert load_pruner(out).metadata["all_episodes"] is True
+    res = pruner_agreement.main(["--task", "lift", "--checkpoint", ckpt, "--pruner", str(out), "--trajectories", traj,
+                                 "--out", str(tmp_path / "agreement.json")])
+    # episodes 2 and 3 (3 + 4 calls, failures included) less their first, dense calls; the third call of
+    # the shorter episode, padding in the lockstep replay, is not counted
+    assert res["episodes"] == "2..3" and res["calls"] == 5
+    assert json.loads((tmp_path / "agreement.json").read_text())["calls"] == 5

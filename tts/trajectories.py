@@ -52,10 +52,11 @@ def load_trajectories(path: Path, successful_only: bool = True) -> tuple[list[di
     return eps, doc["meta"]
 
 
-def held_out_episodes(path: Path, first: int) -> tuple[list[dict], int]:
-    """The successful episodes of ``path`` from index ``first`` on (those a pruner or schedule was not
-    fitted on) and the number of successful episodes in all; an error if there are none."""
-    episodes, _ = load_trajectories(path)
+def held_out_episodes(path: Path, first: int, successful_only: bool = True) -> tuple[list[dict], int]:
+    """The successful (or, with ``successful_only=False``, all) episodes of ``path`` from index ``first``
+    on (those a pruner or schedule was not fitted on) and the number of such episodes in all; an error
+    if there are none."""
+    episodes, _ = load_trajectories(path, successful_only=successful_only)
     if not episodes[first:]:
         raise ValueError(f"no held-out episodes: {len(episodes)} recorded, the first held-out index is {first}")
     return episodes[first:], len(episodes)
@@ -78,8 +79,8 @@ def split_episodes(episodes: Sequence[dict], n_train: int, n_val: int) -> tuple[
         raise ValueError("need at least one training trajectory")
     if len(episodes) < n_train + n_val:
         raise ValueError(
-            f"only {len(episodes)} successful trajectories; asked for {n_train} train + {n_val} val "
-            "(collect more with eval/collect_trajectories.py --episodes N)"
+            f"only {len(episodes)} usable trajectories (the successful ones, or every one with --all-episodes); "
+            f"asked for {n_train} train + {n_val} val (collect more with eval/collect_trajectories.py --episodes N)"
         )
     return list(episodes[:n_train]), list(episodes[n_train:n_train + n_val])
 

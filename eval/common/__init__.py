@@ -71,6 +71,20 @@ def parse_args(ap, argv=None):
     return args
 
 
+def policy_slug(task: str, checkpoint: Any = None) -> str:
+    """``task`` for the bundled ``checkpoints/<task>_dpt`` (or no checkpoint), else ``task-<checkpoint
+    name>``: result files and figures of different policies never share a name."""
+    name = Path(checkpoint).name if checkpoint is not None else f"{task}_dpt"
+    return task if name == f"{task}_dpt" else f"{task}-{name}"
+
+
+def add_all_episodes_option(ap) -> None:
+    """``--all-episodes``: the trajectory tools use every recorded episode, not only the successful ones."""
+    ap.add_argument("--all-episodes", action="store_true",
+                    help="use every recorded episode, not only the successful ones (for a policy that rarely "
+                         "succeeds, e.g. Push-T's, whose episodes run to the horizon)")
+
+
 def write_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` so that an interruption never leaves a half-written file."""
     with atomic_path(Path(path)) as tmp:
