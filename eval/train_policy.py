@@ -67,9 +67,14 @@ class EMA:
 
 def init_from(policy: DiffusionTransformerLowdimPolicy, path: Path) -> None:
     """Copy a finished checkpoint's weights into ``policy`` (normalisers included); a different
-    architecture or observation layout is an error, not a partial load."""
+    architecture or observation layout is an error, not a partial load. Dropout rates may differ (they
+    are not part of the weights): e.g. continuing a policy with the reference's dropout 0.3."""
     src = load_policy(path)
-    if src.cfg.model != policy.cfg.model or list(src.cfg.obs_dims) != list(policy.cfg.obs_dims):
+
+    def architecture(cfg) -> dict:
+        return {k: v for k, v in cfg.model.items() if not k.startswith("p_drop")}
+
+    if architecture(src.cfg) != architecture(policy.cfg) or list(src.cfg.obs_dims) != list(policy.cfg.obs_dims):
         raise SystemExit(f"--init {path}: its model config {src.cfg.model} / obs dims {src.cfg.obs_dims} differ "
                          f"from this run's {policy.cfg.model} / {policy.cfg.obs_dims}")
     policy.load_state_dict(src.state_dict())

@@ -3,8 +3,9 @@
 # operator), its multimodality figure, a DP-T policy (resumes from runs/) and the same policy trained
 # 10000 steps more (warm start), dense and the few-step samplers on validation seeds
 # (recipes/steps_matter.sh), then for the longer-trained policy: the test seeds for dense, the
-# 3- and 7-step samplers and 93% reuse, its full-horizon trajectories and searched steps at 93%.
-#   bash recipes/pusht_testbed.sh   # about 25 min data, 80 min training, 1.5 h evaluation (2 cores)
+# 3- and 7-step samplers and 93% reuse, its full-horizon trajectories and searched steps at 93%; and its
+# counterpart whose last 10000 steps train with the reference's dropout 0.3 (instead of 0.1).
+#   bash recipes/pusht_testbed.sh   # about 25 min data, 2 h training, 1.5 h evaluation (2 cores)
 # Then python eval/tables.py; the Table 7 shape on it: TASK=pusht CKPT=checkpoints/pusht_mh_dpt_17k
 # ALL_EPISODES=1 bash recipes/table7.sh
 set -euo pipefail
@@ -29,3 +30,6 @@ ALL_EPISODES=1 search_steps "$steps" 0.93
 for m in dense ddim:3 ddim:3:trailing ddim:7 dpm:3 dpm:7 uniform:0.93:timestep "file:$steps"; do
   evaluate --method "$m" --threads "${THREADS:-1}"
 done
+[ -f checkpoints/pusht_mh_dpt_17k_dropout0.3.json ] || python eval/train_policy.py --data data/pusht_mh.hdf5 \
+    --init checkpoints/pusht_mh_dpt --dropout 0.3 --out checkpoints/pusht_mh_dpt_17k_dropout0.3 --steps 10000 \
+    --batch 128 --seed 1 --threads "${THREADS:-1}" --resume

@@ -82,6 +82,12 @@ def test_warm_start_copies_weights_and_refuses_another_architecture(tmp_path, on
                               "--lr", "0", "--init", str(tmp_path / "a"), "--run-dir", str(tmp_path / "rb")])
     a, b = load_policy(tmp_path / "a").state_dict(), load_policy(tmp_path / "b").state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)  # lr 0: the warm start is the starting checkpoint
+    # another dropout rate is not another architecture: the continued policy keeps the weights, trains
+    # (and records) its own rate
+    train_policy.main(base + ["--width", "16", "--layers", "1", "--out", str(tmp_path / "d"), "--steps", "1",
+                              "--lr", "0", "--dropout", "0.3", "--init", str(tmp_path / "a"), "--run-dir", str(tmp_path / "rd")])
+    d = load_policy(tmp_path / "d")
+    assert all(torch.equal(a[k], d.state_dict()[k]) for k in a) and d.cfg.model["p_drop_attn"] == 0.3
     with pytest.raises(SystemExit, match="differ"):
         train_policy.main(base + ["--width", "32", "--layers", "1", "--out", str(tmp_path / "c"), "--steps", "1",
                                   "--init", str(tmp_path / "a"), "--run-dir", str(tmp_path / "rc")])
