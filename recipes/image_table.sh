@@ -3,7 +3,7 @@
 # skipped (FORCE=1 redoes them). About 2 h on 2 CPU cores. Writes results/image/*.{npz,json,png}, then
 # docs/results/image.md and the README's image table (eval/tables.py).
 set -euo pipefail
-source "$(dirname "$0")/../scripts/env.sh"
+source "$(dirname "$0")/lib.sh"
 RHO=0.8
 run() {  # run METHOD [ARGS...]: one eval/imagenet.py run (2 processes), skipped if its JSON exists
   local slug
@@ -12,9 +12,9 @@ print(parse_method(sys.argv[1]).slug)" "$1")
   if [ -f "results/image/digits_${slug}.json" ] && [ -z "${FORCE:-}" ]; then echo "[skip] $1"; return; fi
   echo "[run] $*"; bash "$(dirname "$0")/image_run.sh" "$@"
 }
-train_pruner() {  # train_pruner NAME ARGS...: skipped if its checkpoint exists
+train_pruner() {  # train_pruner NAME ARGS...: skipped if its training finished
   local name=$1; shift
-  if [ -f "checkpoints/pruners/${name}.json" ] && [ -z "${FORCE:-}" ]; then echo "[skip] $name"; return; fi
+  if trained "$name" && [ -z "${FORCE:-}" ]; then echo "[skip] $name"; return; fi
   python eval/train_image_pruner.py --model checkpoints/digits_dit --out "checkpoints/pruners/${name}" \
       --sparsity $RHO --prior every_n:5 --val-mode budget --n-train 128 --n-val 32 --epochs 3 \
       --threads 2 --run-dir "runs/${name}" --resume "$@"

@@ -46,11 +46,19 @@ evaluate() { eval_seeds --task "$TASK" --checkpoint "$CKPT" "$@"; }
 # recorded episode instead of the successful ones.
 all_episodes() { [ -z "${ALL_EPISODES:-}" ] || echo --all-episodes; }
 
+# trained NAME: whether checkpoints/pruners/NAME holds a finished training (eval/train_pruner.py writes
+# the best epoch so far after every epoch, so an interrupted run leaves a checkpoint that is not done).
+trained() {
+  [ -f "checkpoints/pruners/$1.json" ] && python -c 'import json, sys
+m = json.load(open(sys.argv[1]))["metadata"]
+sys.exit(0 if m["history"][-1]["epoch"] >= m["epochs"] else 1)' "checkpoints/pruners/$1.json"
+}
+
 # train_named NAME ARGS...: eval/train_pruner.py on the robot_task's trajectories (paired, resumable;
 # skipped when checkpoints/pruners/NAME exists); NTRAIN / NVAL (default 16) / EPOCHS set the sizes.
 train_named() {
   local name=$1; shift
-  [ -f "checkpoints/pruners/$name.json" ] || python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
+  trained "$name" || python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
       --out "checkpoints/pruners/$name" --n-train "$NTRAIN" --n-val "${NVAL:-16}" --epochs "$EPOCHS" --paired --threads 2 \
       --run-dir "runs/$name" --resume $(all_episodes) "$@"
 }

@@ -43,7 +43,7 @@ fi
 # shellcheck disable=SC2046
 reference_pruner() {  # NAME DIRECTIONS [ARGS...]: the reference recipe on 96 train / 16 validation episodes
   local name=$1 dirs=$2; shift 2
-  [ -f "checkpoints/pruners/$name.json" ] || python eval/train_pruner.py --recipe reference --trajectories "$TRAJ" \
+  trained "$name" || python eval/train_pruner.py --recipe reference --trajectories "$TRAJ" \
       --checkpoint "$CKPT" --out "checkpoints/pruners/$name" --directions "$dirs" --sparsity 0.93 \
       --n-train 96 --n-val 16 --threads "${THREADS:-2}" --run-dir "runs/$name" --resume $(all_episodes) "$@"
 }
@@ -64,11 +64,11 @@ if [[ $parts == *analysis* ]]; then
   [ -f "docs/${policy}_feature_similarity.png" ] || python eval/figures.py similarity --task "$TASK" \
       --checkpoint "$CKPT" --trajectories "$TRAJ" $(all_episodes)
   # shellcheck disable=SC2046
-  [ ! -f "checkpoints/pruners/$prior.json" ] || [ -f "results/robot/agreement_${TASK}_$prior.json" ] \
+  ! trained "$prior" || [ -f "results/robot/agreement_${TASK}_$prior.json" ] \
       || python eval/pruner_agreement.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
       --pruner "checkpoints/pruners/$prior" $(all_episodes)
   # shellcheck disable=SC2046
-  [ ! -f "checkpoints/pruners/$omni.json" ] || [ -f "docs/${policy}_pruning_masks.png" ] \
+  ! trained "$omni" || [ -f "docs/${policy}_pruning_masks.png" ] \
       || python eval/figures.py masks --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
       --pruner "checkpoints/pruners/$omni" $(all_episodes)
 fi
