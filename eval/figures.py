@@ -116,7 +116,8 @@ def similarity(args) -> Path:
     fig.colorbar(im, ax=axes[2], fraction=0.05)
     ks = np.arange(K)
     for name, m in sims.items():
-        axes[3].plot(ks, np.nanmean(m, axis=1), label=name)
+        rows = ~np.isnan(m).all(axis=1)  # timestep: step 0 has no earlier step
+        axes[3].plot(ks[rows], np.nanmean(m[rows], axis=1), label=name)
     axes[3].set_xlabel("denoising step k")
     axes[3].set_ylabel("mean cosine similarity over branches")
     axes[3].legend(fontsize=8)
