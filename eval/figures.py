@@ -209,8 +209,9 @@ FAMILY_STYLE = {"ddim": ("#3182bd", "DDIM-k (leading, Diffusion Policy's)"),
 
 
 def frontier(args) -> Path:
-    """One panel per batch size: success (Wilson 95% interval) against speed-up over dense, the
-    fewer-step samplers as lines through their k, dense and every sparse method as points."""
+    """One panel per batch size: the score (success with its Wilson 95% interval, or Push-T's mean
+    best coverage with a normal one) against speed-up over dense, the fewer-step samplers as lines
+    through their k, dense and every sparse method as points."""
     plt = _plt()
     folder = REPO / "results" / "robot"
     name = args.task if args.checkpoint is None or args.checkpoint.name == f"{args.task}_dpt" else \
@@ -225,21 +226,22 @@ def frontier(args) -> Path:
         for fam, (color, label) in FAMILY_STYLE.items():
             line = sorted((p for p in points if p.family == fam), key=lambda p: p.speedup)
             if line:
-                ax.plot([p.speedup for p in line], [p.success for p in line], "-o", color=color, label=label, ms=4)
+                ax.plot([p.speedup for p in line], [p.score for p in line], "-o", color=color, label=label, ms=4)
                 for p in line:
-                    ax.annotate(p.method.split(":")[1], (p.speedup, p.success), fontsize=7, color=color,
+                    ax.annotate(p.method.split(":")[1], (p.speedup, p.score), fontsize=7, color=color,
                                 xytext=(3, 3), textcoords="offset points")
         for p in points:
             if p.family in FAMILY_STYLE:
                 continue
             marker, color = ("s", "black") if p.family == "dense" else ("D", "#e6550d")
-            ax.errorbar([p.speedup], [p.success], yerr=[[p.success - p.interval[0]], [p.interval[1] - p.success]],
+            ax.errorbar([p.speedup], [p.score], yerr=[[p.score - p.interval[0]], [p.interval[1] - p.score]],
                         fmt=marker, color=color, ms=5, capsize=2)
-            ax.annotate(p.method if len(p.method) < 34 else p.method[:32] + "..", (p.speedup, p.success), fontsize=6,
+            ax.annotate(p.method if len(p.method) < 34 else p.method[:32] + "..", (p.speedup, p.score), fontsize=6,
                         xytext=(4, -9), textcoords="offset points")
         ax.set_xscale("log")
         ax.set_xlabel("policy-call speed-up over dense DDPM-100 (same process)")
-        ax.set_ylabel("success rate (test episodes)")
+        ax.set_ylabel("success rate (test episodes)" if points[0].metric == "success"
+                      else "mean best goal coverage (test episodes)")
         ax.set_ylim(-0.02, 1.05)
         ax.set_title(f"{name}, batch {batch}")
         ax.grid(alpha=0.3)

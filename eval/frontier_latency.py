@@ -26,7 +26,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, parse_args, policy_slug, provenance, write_json  # noqa: E402
+from common import REPO, add_all_episodes_option, parse_args, policy_slug, provenance, write_json  # noqa: E402
 from common.methods import ROBOT_KINDS, VOCABULARY, install_policy, parse_method  # noqa: E402
 from common.policy_timing import batch_frames, computed_steps, time_calls  # noqa: E402
 
@@ -47,6 +47,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--first-episode", type=int, default=96, help="episodes used (default: past pruner training)")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--resume", action="store_true", help="keep the (method, batch) rows already in --out")
+    add_all_episodes_option(ap)
     args = parse_args(ap, argv)
     try:
         methods = [parse_method(m, kinds=ROBOT_KINDS) for m in args.methods]
@@ -59,7 +60,7 @@ def main(argv=None) -> dict:
     rows: dict[str, dict] = {}
     if args.resume and out.exists():
         rows = {f"{r['method']}@{r['batch']}": r for r in json.loads(out.read_text())["rows"]}
-    episodes, _ = load_trajectories(args.trajectories)
+    episodes, _ = load_trajectories(args.trajectories, successful_only=not args.all_episodes)
     pool = episodes[args.first_episode:] or episodes
     dense = load_policy(args.checkpoint)
     policies = {}

@@ -30,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, provenance, write_json, parse_args  # noqa: E402
+from common import REPO, add_all_episodes_option, parse_args, provenance, write_json  # noqa: E402
 from common import methods  # noqa: E402
 from common.methods import ROBOT_KINDS, VOCABULARY, parse_method  # noqa: E402
 from common.policy_timing import batch_frames, computed_steps, time_calls  # noqa: E402
@@ -57,6 +57,7 @@ def main(argv=None) -> dict:
                          "the accelerated call's number of computed steps)")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--resume", action="store_true", help="skip when the result file exists")
+    add_all_episodes_option(ap)
     args = parse_args(ap, argv)
     method = parse_method(args.method, kinds=ROBOT_KINDS, forecast=args.forecast)
     matched = args.reference == "ddim:matched"
@@ -69,7 +70,7 @@ def main(argv=None) -> dict:
     if args.resume and out_path.exists():
         print(f"[skip] {out_path} exists")
         return json.loads(out_path.read_text())
-    episodes, _ = load_trajectories(args.trajectories)
+    episodes, _ = load_trajectories(args.trajectories, successful_only=not args.all_episodes)
     pool = episodes[args.first_episode:] or episodes
     dense = load_policy(args.checkpoint)
     fast = load_policy(args.checkpoint)

@@ -306,9 +306,10 @@ def table7(folder: Path) -> str:
 
 
 def frontier_table(folder: Path) -> str:
-    """Success against speed-up over dense per policy and batch size (eval/common/frontier.py): every
-    method with test-seed runs and a row in frontier_latency_<policy>.json."""
-    rows = ["| policy | batch | method | computed steps | success (episodes) [95% CI] | speed-up vs dense | "
+    """Score (success, or Push-T's mean best coverage) against speed-up over dense per policy and batch
+    size (eval/common/frontier.py): every method with test-seed runs and a row in
+    frontier_latency_<policy>.json."""
+    rows = ["| policy | batch | method | computed steps | score (episodes) [95% CI] | speed-up vs dense | "
             "ms per call | on the frontier | sparse: minus the best fewer-step sampler at least as fast (paired 95% CI) |",
             "|---|---|---|---|---|---|---|---|---|"]
     for path in sorted(folder.glob("frontier_latency_*.json")):
@@ -324,8 +325,8 @@ def frontier_table(folder: Path) -> str:
                         f"`{vs[0].method}`: {vs[1]:+.3f} ({vs[2]:+.3f}, {vs[3]:+.3f})"
                         + (" **beats it**" if vs[2] > 0 else ""))
                 steps = "100" if p.method == "dense" else str(p.computed_steps)
-                rows.append(f"| {policy} | {batch} | `{p.method}` | {steps} | {p.success:.2f} ({p.episodes}) "
-                            f"[{p.interval[0]:.2f}, {p.interval[1]:.2f}] | {p.speedup:.2f}x | {p.latency_ms:.1f} | "
+                rows.append(f"| {policy} | {batch} | `{p.method}` | {steps} | {p.metric} {p.score:.3f} ({p.episodes}) "
+                            f"[{p.interval[0]:.3f}, {p.interval[1]:.3f}] | {p.speedup:.2f}x | {p.latency_ms:.1f} | "
                             f"{'yes' if frontier.on_frontier(p, points) else ''} | {versus} |")
     return "\n".join(rows) + "\n"
 

@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
-# The robot frontier: success against policy-call latency for TASK=lift (default) or can (or a policy
-# given by CKPT, with TRAJ its recorded trajectories), every method on the same test episodes (SEEDS,
+# The robot frontier: success (Push-T: mean best coverage) against policy-call latency for TASK=lift
+# (default) or can (or a policy given by CKPT, with TRAJ its recorded trajectories; Push-T's:
+# TASK=pusht CKPT=checkpoints/pusht_mh_dpt_17k TRAJ=data/trajectories/pusht-pusht_mh_dpt_17k_full.pt
+# ALL_EPISODES=1), every method on the same test episodes (SEEDS,
 # default 3 x 50) and timed against one dense reference in one process (eval/frontier_latency.py,
 # batch 1 and 28). Methods: dense DDPM-100; DDIM-k (k = 2 3 4 5 7 10 16), trailing DDIM-k (2 3 5),
 # DPM-Solver++-k (2 3 5 7); searched whole steps at 90-98% on DDPM-100; the TTS step pruner served at
 # those budgets; TTS on DDIM-20 and DDIM-10 bases at 7 computed steps (uniform and searched); the
 # BAC-style schedule, uniform and FORA-interval timestep reuse at 93%. Resumable; a full run is
-# several hours on 2 CPU cores (PARTS=success,latency,figures picks stages; ALL_EPISODES=1 searches on
+# several hours on 2 CPU cores (PARTS=success,latency,figures picks stages; ALL_EPISODES=1 uses
 # every recorded episode, for a policy that rarely succeeds). Then python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
@@ -47,8 +49,9 @@ if [[ $parts == *success* ]]; then
   done
 fi
 if [[ $parts == *latency* ]]; then
+  # shellcheck disable=SC2046
   python eval/frontier_latency.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" --batch 1 28 \
-      --trials "${TRIALS:-3}" --threads "${THREADS:-2}" --resume \
+      --trials "${TRIALS:-3}" --threads "${THREADS:-2}" --resume $(all_episodes) \
       --methods $(for m in "${methods[@]:1}"; do have "$m" && echo "$m"; done)
 fi
 if [[ $parts == *figures* ]]; then

@@ -85,5 +85,5 @@ headroom() {
 # latency METHOD: eval/latency.py at batch 1 and 28 against dense in one process (skipped when done).
 latency() {
   python eval/latency.py --threads 2 --batch 1 28 --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
-      --method "$1" --resume
+      --method "$1" --resume $(all_episodes)
 }

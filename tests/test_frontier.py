@@ -72,6 +72,35 @@ def test_frontier_join_dominance_and_the_fewer_steps_verdict(tmp_path):
         ["dense", "ddim", "ddim-trailing", "dpm", "sparse"]
 
 
+def test_frontier_of_a_coverage_policy_scores_mean_coverage_with_paired_differences(tmp_path):
+    """Push-T runs record goal coverage: the frontier scores the mean best coverage per episode, and
+    the verdict against fewer steps is the paired coverage difference on the same episodes."""
+    from common import frontier
+
+    def run(method, cov):
+        eps = [{"seed": 100000 + i, "success": False, "max_coverage": c} for i, c in enumerate(cov)]
+        doc = {"task": "pusht", "checkpoint": "checkpoints/pusht_mh_dpt_17k", "method": method,
+               "episodes_requested": len(eps), "episodes_done": len(eps), "success_rate": 0.0,
+               "mean_max_coverage": sum(cov) / len(cov), "provenance": {"seeds": [e["seed"] for e in eps]},
+               "episodes": eps}
+        (tmp_path / f"pusht_{method.replace(':', '-')}.json").write_text(json.dumps(doc))
+
+    run("dense", [0.6, 0.7, 0.8, 0.5])
+    run("dpm:7", [0.4, 0.5, 0.6, 0.5])
+    run("uniform:0.93:timestep", [0.5, 0.6, 0.7, 0.6])  # +0.1 on every episode, as fast
+    rows = [{"method": m, "batch": 1, "latency_ms": 10.0, "speedup": 14.0, "dense_ms": 140.0, "computed_steps": 7}
+            for m in ("dpm:7", "uniform:0.93:timestep")]
+    (tmp_path / "frontier_latency_pusht-pusht_mh_dpt_17k.json").write_text(json.dumps({"rows": rows}))
+    pts = {p.method: p for p in frontier.frontier_points(tmp_path, "pusht (pusht_mh_dpt_17k)", 1)}
+    assert {p.metric for p in pts.values()} == {"coverage"}
+    assert pts["dense"].score == pytest.approx(0.65) and pts["dpm:7"].score == pytest.approx(0.5)
+    lo, hi = pts["dense"].interval
+    assert 0 <= lo < 0.65 < hi <= 1
+    best, diff, lo, hi = frontier.beats_fewer_steps(pts["uniform:0.93:timestep"], list(pts.values()))
+    assert best.method == "dpm:7" and diff == pytest.approx(0.1) and lo == pytest.approx(0.1) == hi
+    assert not frontier.on_frontier(pts["dpm:7"], list(pts.values()))
+
+
 def test_searched_steps_on_a_shorter_base_sampler(tmp_path):
     """eval/search_static.py --sampler ddim:4: the schedule has the base's 4 steps, and it runs as
     file:SCHEDULE+ddim:4 (a file made for the policy's own 6 steps says it does not fit)."""

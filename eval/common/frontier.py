@@ -1,12 +1,13 @@
-"""Success against policy-call speed: the frontier of every method of a policy (eval/tables.py,
+"""Score against policy-call speed: the frontier of every method of a policy (eval/tables.py,
 eval/figures.py).
 
-Success comes from eval/robot.py runs on the test seeds (validation runs never pool), pooled per
-method; speed is the method's speed-up over dense in eval/frontier_latency.py, where every method
-was timed against the same dense reference in one process. A point is on the frontier when no other
-point is at least as fast and at least as successful (one of them strictly). A sparse method beats
-fewer steps when its success is significantly higher (paired 95% interval above zero, on the same
-episodes) than the best fewer-step sampler that is at least as fast.
+The score is success, or for a policy whose runs record goal coverage (Push-T) the mean best
+coverage per episode, from eval/robot.py runs on the test seeds (validation runs never pool), pooled
+per method; speed is the method's speed-up over dense in eval/frontier_latency.py, where every
+method was timed against the same dense reference in one process. A point is on the frontier when no
+other point is at least as fast and scores at least as high (one of them strictly). A sparse method
+beats fewer steps when its score is significantly higher (paired 95% interval above zero, on the
+same episodes) than the best fewer-step sampler that is at least as fast.
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from .stats import newcombe_paired, paired_counts, policy_of, wilson
+from .stats import mean_interval, newcombe_paired, paired_counts, paired_score_difference, policy_of, wilson
 
 __all__ = ["Point", "family", "frontier_points", "on_frontier", "beats_fewer_steps"]
 
@@ -35,16 +36,18 @@ def family(method: str) -> str:
 
 @dataclass
 class Point:
-    """One method of one policy at one batch size."""
+    """One method of one policy at one batch size: its ``score`` (``metric``: "success" or "coverage")
+    with a 95% interval."""
 
     method: str
-    success: float
+    score: float
     episodes: int
     interval: tuple[float, float]
     speedup: float
     latency_ms: float
     computed_steps: int
     runs: list[dict] = field(repr=False, default_factory=list)
+    metric: str = "success"
 
     @property
     def family(self) -> str:
@@ -75,21 +78,28 @@ def frontier_points(folder: Path, policy: str, batch: int) -> list[Point]:
     dense_ms = next(iter(rows.values()))["dense_ms"]
     rows["dense"] = {"latency_ms": dense_ms, "speedup": 1.0, "computed_steps": -1}
     points = []
-    for method, rs in _success_runs(folder, policy).items():
+    runs = _success_runs(folder, policy)
+    coverage = any(r.get("mean_max_coverage") is not None for rs in runs.values() for r in rs)
+    for method, rs in runs.items():
         lat = rows.get(method)
         if lat is None:
             continue
         n = sum(r["episodes_done"] for r in rs)
-        k = round(sum(r["success_rate"] * r["episodes_done"] for r in rs))
-        points.append(Point(method, k / n, n, wilson(k, n), lat["speedup"], lat["latency_ms"],
-                            lat["computed_steps"], rs))
+        if coverage:
+            mean, lo, hi = mean_interval([e["max_coverage"] for r in rs for e in r["episodes"]])
+            score, interval = mean, (max(lo, 0.0), min(hi, 1.0))
+        else:
+            k = round(sum(r["success_rate"] * r["episodes_done"] for r in rs))
+            score, interval = k / n, wilson(k, n)
+        points.append(Point(method, score, n, interval, lat["speedup"], lat["latency_ms"], lat["computed_steps"], rs,
+                            "coverage" if coverage else "success"))
     return sorted(points, key=lambda p: p.speedup)
 
 
 def on_frontier(p: Point, points: list[Point]) -> bool:
-    """No other point is at least as fast and as successful, and strictly better in one of them."""
-    return not any(q is not p and q.speedup >= p.speedup and q.success >= p.success
-                   and (q.speedup > p.speedup or q.success > p.success) for q in points)
+    """No other point is at least as fast and scores as high, and strictly better in one of them."""
+    return not any(q is not p and q.speedup >= p.speedup and q.score >= p.score
+                   and (q.speedup > p.speedup or q.score > p.score) for q in points)
 
 
 def beats_fewer_steps(p: Point, points: list[Point]) -> Optional[tuple[Point, float, float, float]]:
@@ -99,6 +109,9 @@ def beats_fewer_steps(p: Point, points: list[Point]) -> Optional[tuple[Point, fl
     rivals = [q for q in points if q.family in ("ddim", "ddim-trailing", "dpm") and q.speedup >= p.speedup]
     if not rivals:
         return None
-    best = max(rivals, key=lambda q: (q.success, q.speedup))
+    best = max(rivals, key=lambda q: (q.score, q.speedup))
+    if p.metric == "coverage":
+        d = paired_score_difference(p.runs, best.runs)
+        return None if d is None else (best, *d[:3])
     diff, lo, hi = newcombe_paired(*paired_counts(p.runs, best.runs))
     return best, diff, lo, hi

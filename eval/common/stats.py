@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Optional
 
 __all__ = ["VALIDATION_SEEDS", "policy_of", "paired_counts", "paired_vs_dense", "wilson", "newcombe_paired",
-           "sign_test_p"]
+           "sign_test_p", "mean_interval", "paired_score_difference"]
 
 VALIDATION_SEEDS = 400000  # first seeds from here on are validation episodes (recipes/steps_matter.sh)
 
@@ -93,6 +93,17 @@ def sign_test_p(b: int, c: int) -> float:
     return min(1.0, 2 * tail)
 
 
+def mean_interval(values: list[float]) -> tuple[float, float, float]:
+    """Mean of per-episode scores with a 95% normal interval: (mean, low, high); zero width for
+    fewer than two values."""
+    n = len(values)
+    mean = sum(values) / n
+    if n < 2:
+        return mean, mean, mean
+    half = 1.96 * (sum((x - mean) ** 2 for x in values) / (n - 1)) ** 0.5 / n ** 0.5
+    return mean, mean - half, mean + half
+
+
 def paired_score_difference(runs: list[dict], other: list[dict], key: str = "max_coverage") -> Optional[tuple[float, float, float, int]]:
     """Mean difference of a per-episode score (``runs`` minus ``other``) on the episodes both ran,
     with a 95% t-interval: (mean, low, high, episodes); None without shared scored episodes."""
@@ -101,7 +112,4 @@ def paired_score_difference(runs: list[dict], other: list[dict], key: str = "max
     d = [a[s] - b[s] for s in a if s in b]
     if len(d) < 2:
         return None
-    mean = sum(d) / len(d)
-    sd = (sum((x - mean) ** 2 for x in d) / (len(d) - 1)) ** 0.5
-    half = 1.96 * sd / len(d) ** 0.5
-    return mean, mean - half, mean + half, len(d)
+    return (*mean_interval(d), len(d))
