@@ -42,7 +42,7 @@ from robot_suite import experts as experts_module  # noqa: E402
 from robot_suite import pusht as pusht_module  # noqa: E402
 from robot_suite.experts import EXPERT, EXPERTS, OPERATORS, Operator, make_expert  # noqa: E402
 from robot_suite.robomimic import Demo, read_demos, write_demos  # noqa: E402
-from robot_suite.tasks import TASKS, env_args, low_dim_obs, make_env, reset_env  # noqa: E402
+from robot_suite.tasks import TASKS, env_args, low_dim_obs, make_env, reset_env, sim_state  # noqa: E402
 
 QUALITIES = ("better", "okay", "worse")
 
@@ -65,7 +65,7 @@ def run_expert(env, task: str, seed: int, extra_steps: int = 10, noise: float = 
         lo = low_dim_obs(raw)
         for k in keys:
             obs[k].append(lo[k])
-        states.append(raw["state"] if task == "pusht" else env.sim.get_state().flatten())
+        states.append(sim_state(env, raw))
         a = expert.act(raw)
         executed = a.copy()
         if noise > 0 and expert.phase in expert.noisy_phases:

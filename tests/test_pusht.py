@@ -5,7 +5,7 @@ import pytest
 pytest.importorskip("gym_pusht")
 
 from robot_suite import pusht  # noqa: E402
-from robot_suite.tasks import TASKS, low_dim_obs, make_env, reset_env, task_of_env  # noqa: E402
+from robot_suite.tasks import TASKS, low_dim_obs, make_env, reset_env, sim_state, task_of_env  # noqa: E402
 
 
 def test_reset_to_reproduces_a_state_exactly():
@@ -20,6 +20,19 @@ def test_reset_to_reproduces_a_state_exactly():
     raw = pusht.make_pusht()
     raw.reset(options={"reset_to_state": obs["state"]})
     assert np.abs(raw.get_obs()[2:4] - obs["state"][2:4]).max() > 1.0  # the library's own reset moves it
+
+
+def test_the_recorded_state_of_a_push_t_step_restores_its_scene():
+    """collect_demos records sim_state per step (the dataset's ``states``): for the task's own env,
+    reset_to of that state gives back the same observation."""
+    env = make_env("pusht")
+    raw = reset_env(env, 11)
+    for _ in range(3):
+        raw = env.step(raw["state"][:2] + 20.0)[0]
+    state = sim_state(env, raw)
+    again = make_env("pusht").reset_to(state)
+    for k in TASKS["pusht"].obs_keys:
+        np.testing.assert_allclose(low_dim_obs(again)[k], low_dim_obs(raw)[k], atol=1e-5)
 
 
 def test_keypoints_match_the_block_shapes_and_the_goal_scores_full_coverage():

@@ -17,23 +17,28 @@ import numpy as np
 
 from .pusht import PUSHT_OBS_KEYS, PushTScene
 
-__all__ = ["TASKS", "TaskConfig", "OBS_KEYS", "make_env", "reset_env", "low_dim_obs", "env_args", "task_of_env"]
+__all__ = ["TASKS", "TaskConfig", "OBS_KEYS", "make_env", "reset_env", "low_dim_obs", "env_args", "task_of_env",
+           "sim_state"]
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
 
 @dataclass(frozen=True)
 class TaskConfig:
+    """A task: its env's name, episode horizon, the policy's observation keys and the simulator
+    family (``suite``: "robosuite" or "pusht") that builds, describes and snapshots its env."""
+
     env_name: str
     horizon: int = 400
     obs_keys: tuple[str, ...] = OBS_KEYS
+    suite: str = "robosuite"
 
 
 TASKS = {
     "lift": TaskConfig("Lift"),
     "can": TaskConfig("PickPlaceCan"),
     "square": TaskConfig("NutAssemblySquare"),
-    "pusht": TaskConfig("PushT", horizon=300, obs_keys=PUSHT_OBS_KEYS),
+    "pusht": TaskConfig("PushT", horizon=300, obs_keys=PUSHT_OBS_KEYS, suite="pusht"),
 }
 
 
@@ -82,10 +87,11 @@ def import_robosuite():
 
 
 def make_env(task: str, seed: Optional[int] = None, render: bool = False):
-    """A robosuite env for ``task`` (lift / can / square); ``seed`` fixes object placements."""
+    """The env of ``task``: robosuite's (lift / can / square; ``seed`` fixes object placements) or the
+    Push-T scene (seeded per episode by :func:`reset_env`)."""
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; choose from {sorted(TASKS)}")
-    if task == "pusht":
+    if TASKS[task].suite == "pusht":
         return PushTScene()
     suite = import_robosuite()
     env = suite.make(TASKS[task].env_name, seed=seed, **_env_kwargs(task, render))
@@ -111,13 +117,21 @@ def reset_env(env, seed: int) -> dict:
 
 def env_args(task: str) -> dict:
     """robomimic-style env metadata stored in datasets."""
-    if task == "pusht":
+    if TASKS[task].suite == "pusht":
         return {"env_name": "PushT", "type": 0, "env_kwargs": {"obs_type": "state", "control_hz": 10,
                                                                 "horizon": TASKS[task].horizon},
                 "env_version": "gym-pusht"}
     kw = _env_kwargs(task, False)
     kw["controller_configs"] = "BASIC (OSC_POSE arm), Panda"
     return {"env_name": TASKS[task].env_name, "type": 1, "env_kwargs": kw, "env_version": "robosuite 1.5"}
+
+
+def sim_state(env, raw: dict) -> np.ndarray:
+    """The simulator state a dataset records per step (robomimic's ``states``), from which
+    ``reset_to`` restores the scene: Push-T's own state vector, or MuJoCo's flattened state."""
+    if isinstance(env, PushTScene):
+        return np.asarray(raw["state"])
+    return env.sim.get_state().flatten()
 
 
 def low_dim_obs(raw: dict) -> dict[str, np.ndarray]:
