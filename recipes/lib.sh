@@ -3,11 +3,11 @@
 source "$(dirname "${BASH_SOURCE[0]}")/../scripts/env.sh"
 
 # eval_seeds ROBOT_ARGS...: eval/robot.py on 50 test episodes for each of $SEEDS (default: the 3
-# evaluation seeds); --resume skips finished runs and continues cut-off ones.
+# evaluation seeds); --resume skips finished runs and continues cut-off ones; THREADS sets torch threads.
 eval_seeds() {
   local seed
   for seed in ${SEEDS:-100000 100050 100100}; do
-    python eval/robot.py "$@" --episodes 50 --seed "$seed" --resume
+    python eval/robot.py ${THREADS:+--threads "$THREADS"} "$@" --episodes 50 --seed "$seed" --resume
   done
 }
 
@@ -59,7 +59,7 @@ sys.exit(0 if m["history"][-1]["epoch"] >= m["epochs"] else 1)' "checkpoints/pru
 train_named() {
   local name=$1; shift
   trained "$name" || python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
-      --out "checkpoints/pruners/$name" --n-train "$NTRAIN" --n-val "${NVAL:-16}" --epochs "$EPOCHS" --paired --threads 2 \
+      --out "checkpoints/pruners/$name" --n-train "$NTRAIN" --n-val "${NVAL:-16}" --epochs "$EPOCHS" --paired --threads "${THREADS:-2}" \
       --run-dir "runs/$name" --resume $(all_episodes) "$@"
 }
 
@@ -71,7 +71,7 @@ search_steps() {
   # shellcheck disable=SC2046
   set -- "$@" $(all_episodes)
   [ -f "$out" ] || python eval/search_static.py --checkpoint "$CKPT" --trajectories "$TRAJ" --sparsity "$rho" \
-      --objective output --calls "${CALLS:-64}" --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads 2 --out "$out" "$@"
+      --objective output --calls "${CALLS:-64}" --batch 64 --shifts 1,2,4,8 --sweeps 40 --threads "${THREADS:-2}" --out "$out" "$@"
 }
 
 # headroom SCHEDULE: eval/oracle_headroom.py around a searched whole-step schedule, unless its result
@@ -79,7 +79,7 @@ search_steps() {
 headroom() {
   local name=${1##*/}
   [ -f "results/robot/headroom_${TASK}_${name%.json}.json" ] || python eval/oracle_headroom.py --task "$TASK" \
-      --checkpoint "$CKPT" --trajectories "$TRAJ" --schedule "$1" --threads 2 $(all_episodes)
+      --checkpoint "$CKPT" --trajectories "$TRAJ" --schedule "$1" --threads "${THREADS:-2}" $(all_episodes)
 }
 
 # latency METHOD: eval/latency.py at batch 1 and 28 against dense in one process (skipped when done).

@@ -14,7 +14,8 @@
 #   analysis  the prior pruner's agreement with the prior on held-out episodes, the oracle headroom
 #             around the searched steps, the mask and rollout-feature-similarity figures
 # Every step is skipped when its output exists. ALL_EPISODES=1 uses every recorded episode, not only
-# the successful ones (Push-T). Then python eval/tables.py
+# the successful ones (Push-T). THREADS: torch threads of every step (default 2; 1 next to another job).
+# Then python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
 ckpt=${CKPT:-checkpoints/lift_mh_dpt}
@@ -24,7 +25,7 @@ policy=${TASK}-$(basename "$CKPT")
 parts=${PARTS:-statics,pruners,analysis}
 TRAJ=data/trajectories/${policy}_full.pt
 [ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 112 \
-    --full-horizon --out "$TRAJ" --resume
+    --full-horizon --out "$TRAJ" --resume --threads "${THREADS:-2}"
 steps=results/schedules/${policy}_steps_0.93.json
 search_steps "$steps" 0.93
 early=results/schedules/${policy}_steps_0.93_rollout_early.json
