@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # The paper's Table 7 shape at 93% on one policy (TASK, CKPT; default the MH-style Lift policy), on the
-# test seeds, every row paired with dense on the same episodes. PARTS picks the stages (default all):
+# test seeds, every row paired with dense on the same episodes. PARTS picks the stages (default all;
+# STATICS="dense dpm:7 file:STEPS ..." runs only those static rows, file:STEPS / file:EARLY standing
+# for the searched steps and their rollout-early variant):
 #   statics   dense; the few-step samplers; the searched static whole steps; one reuse direction at a
 #             time as uniform static plans (forward, timestep, rollout), rollout with the compute steps
 #             rotating per call (every slot refreshed), and the searched steps with rollout reuse on
@@ -33,13 +35,17 @@ early=results/schedules/${policy}_steps_0.93_rollout_early.json
 omni=${policy}_reference_forward-timestep-rollout_0.93
 prior=${policy}_reference_prior_0.93
 if [[ $parts == *statics* ]]; then
-  for m in dense ddim:7 ddim:3 ddim:3:trailing dpm:3 dpm:7 "file:$steps" uniform:0.93:forward uniform:0.93:timestep \
-           uniform:0.93:rollout rotating:0.93:rollout "file:$early"; do
-    evaluate --method "$m"
+  # shellcheck disable=SC2206
+  statics=(${STATICS:-dense ddim:7 ddim:3 ddim:3:trailing dpm:3 dpm:7 file:STEPS uniform:0.93:forward \
+           uniform:0.93:timestep uniform:0.93:rollout rotating:0.93:rollout file:EARLY})
+  for m in "${statics[@]}"; do
+    m=${m/file:STEPS/file:$steps}
+    evaluate --method "${m/file:EARLY/file:$early}"
   done
   # shellcheck disable=SC2046
-  [ -f "results/robot/rollout_age_${TASK}.json" ] || python eval/rollout_age.py --task "$TASK" --checkpoint "$CKPT" \
-      --trajectories "$TRAJ" --methods uniform:0.93:rollout rotating:0.93:rollout "file:$early" $(all_episodes)
+  [ -n "${STATICS:-}" ] || [ -f "results/robot/rollout_age_${policy}.json" ] || python eval/rollout_age.py \
+      --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
+      --methods uniform:0.93:rollout rotating:0.93:rollout "file:$early" $(all_episodes)
 fi
 # shellcheck disable=SC2046
 reference_pruner() {  # NAME DIRECTIONS [ARGS...]: the reference recipe on 96 train / 16 validation episodes

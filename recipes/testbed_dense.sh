@@ -7,7 +7,7 @@
 # THREADS: torch threads (default 1). Then python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
-for pair in lift:lift_mh_dpt can:can_mh_dpt square:square_mh_dpt square:square_dpt; do
+for pair in lift:lift_mh_dpt can:can_mh_dpt square:square_dpt square:square_mh_dpt; do
   TASK=${pair%%:*}
   CKPT=checkpoints/${pair#*:}
   [ -f "$CKPT.json" ] || { echo "[skip] $CKPT: no checkpoint"; continue; }
