@@ -12,3 +12,18 @@ def as_tensor(out):
 def run(model, args):
     with torch.no_grad():
         return as_tensor(model(*args)).clone()
+
+
+def write_coverage_run(folder, method: str, coverage: list[float], checkpoint: str = "checkpoints/pusht_mh_dpt_17k",
+                       first_seed: int = 100000, **extra) -> None:
+    """An eval/robot.py result file of a Push-T run in ``folder``: one episode per ``coverage`` value
+    (best goal coverage), seeds from ``first_seed``; ``extra`` adds or replaces fields."""
+    import json
+    from pathlib import Path
+
+    eps = [{"seed": first_seed + i, "success": c > 0.95, "max_coverage": c} for i, c in enumerate(coverage)]
+    doc = {"task": "pusht", "checkpoint": checkpoint, "method": method, "episodes_requested": len(eps),
+           "episodes_done": len(eps), "success_rate": sum(e["success"] for e in eps) / len(eps),
+           "mean_max_coverage": sum(coverage) / len(coverage), "provenance": {"seeds": [e["seed"] for e in eps]},
+           "episodes": eps, **extra}
+    (Path(folder) / f"pusht_{method.replace(':', '-')}_{first_seed}.json").write_text(json.dumps(doc))

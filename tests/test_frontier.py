@@ -76,18 +76,11 @@ def test_frontier_of_a_coverage_policy_scores_mean_coverage_with_paired_differen
     """Push-T runs record goal coverage: the frontier scores the mean best coverage per episode, and
     the verdict against fewer steps is the paired coverage difference on the same episodes."""
     from common import frontier
+    from helpers import write_coverage_run
 
-    def run(method, cov):
-        eps = [{"seed": 100000 + i, "success": False, "max_coverage": c} for i, c in enumerate(cov)]
-        doc = {"task": "pusht", "checkpoint": "checkpoints/pusht_mh_dpt_17k", "method": method,
-               "episodes_requested": len(eps), "episodes_done": len(eps), "success_rate": 0.0,
-               "mean_max_coverage": sum(cov) / len(cov), "provenance": {"seeds": [e["seed"] for e in eps]},
-               "episodes": eps}
-        (tmp_path / f"pusht_{method.replace(':', '-')}.json").write_text(json.dumps(doc))
-
-    run("dense", [0.6, 0.7, 0.8, 0.5])
-    run("dpm:7", [0.4, 0.5, 0.6, 0.5])
-    run("uniform:0.93:timestep", [0.5, 0.6, 0.7, 0.6])  # +0.1 on every episode, as fast
+    write_coverage_run(tmp_path, "dense", [0.6, 0.7, 0.8, 0.5])
+    write_coverage_run(tmp_path, "dpm:7", [0.4, 0.5, 0.6, 0.5])
+    write_coverage_run(tmp_path, "uniform:0.93:timestep", [0.5, 0.6, 0.7, 0.6])  # +0.1 on every episode, as fast
     rows = [{"method": m, "batch": 1, "latency_ms": 10.0, "speedup": 14.0, "dense_ms": 140.0, "computed_steps": 7}
             for m in ("dpm:7", "uniform:0.93:timestep")]
     (tmp_path / "frontier_latency_pusht-pusht_mh_dpt_17k.json").write_text(json.dumps({"rows": rows}))

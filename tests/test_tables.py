@@ -103,22 +103,13 @@ def test_table7_rows_pool_test_seeds_per_policy_and_skip_validation(tmp_path):
 def test_table7_shows_push_t_coverage_and_starts_with_the_static_direction_rows(tmp_path):
     """A Push-T policy rarely succeeds: its cells give mean best coverage and the paired coverage
     difference to dense; the static rows alone (no pruner trained yet) already make a column."""
-    import json
-
     import tables
+    from helpers import write_coverage_run
 
-    def write(method, cov):
-        eps = [{"seed": 100000 + i, "success": False, "max_coverage": c} for i, c in enumerate(cov)]
-        doc = {"task": "pusht", "checkpoint": "checkpoints/pusht_mh_dpt_17k", "method": method,
-               "episodes_requested": len(eps), "episodes_done": len(eps), "success_rate": 0.0,
-               "mean_max_coverage": sum(cov) / len(cov), "provenance": {"seeds": [e["seed"] for e in eps]},
-               "episodes": eps}
-        (tmp_path / f"{method.replace(':', '-')}.json").write_text(json.dumps(doc))
-
-    write("dense", [0.5, 0.6, 0.7])
-    write("uniform:0.93:rollout", [0.1, 0.2, 0.3])
+    write_coverage_run(tmp_path, "dense", [0.5, 0.6, 0.7])
+    write_coverage_run(tmp_path, "uniform:0.93:rollout", [0.1, 0.2, 0.3])
     assert "No policy" in tables.table7(tmp_path)  # not yet a Table 7 run
-    write("rotating:0.93:rollout", [0.4, 0.6, 0.5])
+    write_coverage_run(tmp_path, "rotating:0.93:rollout", [0.4, 0.6, 0.5])
     header, _, *rows = tables.table7(tmp_path).strip().splitlines()
     assert header == "| row | pusht (pusht_mh_dpt_17k) |"
     row = {r.split(" | ")[0][2:]: r.split(" | ")[1].rstrip(" |") for r in rows}
@@ -141,18 +132,12 @@ def test_paired_score_difference_uses_shared_episodes_and_a_t_interval():
 
 
 def test_coverage_table_pairs_each_sampler_with_dense_of_the_same_policy(tmp_path):
-    import json
-
     import tables
+    from helpers import write_coverage_run
 
-    def write(method, cov, steps, seed=400000):
-        eps = [{"seed": seed + i, "success": c > 0.95, "max_coverage": c} for i, c in enumerate(cov)]
-        doc = {"task": "pusht", "checkpoint": "checkpoints/pusht_mh_dpt", "method": method, "episodes_requested": len(eps),
-               "episodes_done": len(eps), "success_rate": sum(e["success"] for e in eps) / len(eps), "batch": 2,
-               "tts": {"calls": 5, "num_branches": 24, "decision_counts": {"compute": steps * 5 * 2 * 24}},
-               "mean_max_coverage": sum(cov) / len(cov), "provenance": {"seeds": [e["seed"] for e in eps]},
-               "episodes": eps}
-        (tmp_path / f"{method.replace(':', '-')}.json").write_text(json.dumps(doc))
+    def write(method, cov, steps):
+        write_coverage_run(tmp_path, method, cov, "checkpoints/pusht_mh_dpt", 400000, batch=2,
+                           tts={"calls": 5, "num_branches": 24, "decision_counts": {"compute": steps * 5 * 2 * 24}})
 
     assert "No Push-T runs" in tables.coverage_table(tmp_path)
     write("ddim:3", [0.5, 0.4, 0.6], 3)
