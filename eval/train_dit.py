@@ -44,6 +44,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import parse_args, provenance  # noqa: E402
+from common.model_training import EMA, restore_training_state, save_training_state  # noqa: E402
 
 from tts.adapters.dit import DIT_BETAS, DiT, DiTConfig, save_dit  # noqa: E402
 from tts.io import atomic_path  # noqa: E402
@@ -86,25 +87,6 @@ def random_shift(x: torch.Tensor, max_shift: int, generator: torch.Generator) ->
     idx = cols.clamp(0, W - 1)[:, None, None, :].expand_as(x)
     out = torch.gather(x, -1, idx)
     return torch.where(valid[:, None, None, :], out, torch.full_like(out, -1.0))
-
-
-class EMA:
-    """Exponential moving average of the weights; decay ramps up as min(decay, (1 + n) / (10 + n))."""
-
-    def __init__(self, model: torch.nn.Module, decay: float = 0.9995):
-        import copy
-
-        self.model = copy.deepcopy(model).eval().requires_grad_(False)
-        self.decay, self.step = decay, 0
-
-    @torch.no_grad()
-    def update(self, model: torch.nn.Module) -> None:
-        self.step += 1
-        d = min(self.decay, (1 + self.step) / (10 + self.step))
-        for e, p in zip(self.model.parameters(), model.parameters()):
-            e.mul_(d).add_(p.detach(), alpha=1 - d)
-        for e, b in zip(self.model.buffers(), model.buffers()):
-            e.copy_(b)
 
 
 def build_config(args: argparse.Namespace) -> DiTConfig:
@@ -150,7 +132,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     config = build_config(args)
     model = DiT(config)
     model.train()
-    ema = EMA(model, args.ema)
+    ema = EMA(model, lambda n: min(args.ema, (1 + n) / (10 + n)))
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, betas=(0.9, 0.999), weight_decay=0.0)
     warmup = max(1, min(args.warmup, args.steps // 10))
     sched = torch.optim.lr_scheduler.LambdaLR(
@@ -169,22 +151,14 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         if st.get("format") != STATE_FORMAT or st["config"] != asdict(config):
             raise SystemExit(f"{state_path} was saved for another model config ({st.get('config')}); "
                              "use the same --size/--hidden/--depth/... or another --run-dir")
-        model.load_state_dict(st["model"])
-        ema.model.load_state_dict(st["ema"])
-        ema.step = st["ema_step"]
-        opt.load_state_dict(st["opt"])
-        sched.load_state_dict(st["sched"])
-        step, losses = st["step"], st["losses"]
-        torch.set_rng_state(st["rng"])
+        step, losses = restore_training_state(st, "model", model, ema, opt, sched)
         gen.set_state(st["data_rng"])
         print(f"resumed from {state_path} at step {step}")
 
     def save_state() -> None:
-        with atomic_path(state_path) as tmp:
-            torch.save({"format": STATE_FORMAT, "config": asdict(config), "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-                        "model": model.state_dict(), "ema": ema.model.state_dict(), "ema_step": ema.step,
-                        "opt": opt.state_dict(), "sched": sched.state_dict(), "step": step, "losses": losses,
-                        "rng": torch.get_rng_state(), "data_rng": gen.get_state()}, tmp)
+        save_training_state(state_path, "model", model, ema, opt, sched, step, losses, format=STATE_FORMAT,
+                            config=asdict(config), data_rng=gen.get_state(),
+                            args={k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()})
 
     def train_step() -> float:
         idx = torch.randint(0, len(images), (args.batch,), generator=gen)

@@ -25,11 +25,11 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import parse_args, provenance  # noqa: E402
+from common.model_training import EMA, restore_training_state, save_training_state  # noqa: E402
 
 from tts.adapters.dp_policy import DiffusionTransformerLowdimPolicy, PolicyConfig, load_policy, save_policy  # noqa: E402
 from robot_suite.robomimic import read_demos, read_env_args  # noqa: E402
 from robot_suite.tasks import OBS_KEYS, TASKS, task_of_env  # noqa: E402
-from tts.io import atomic_path  # noqa: E402
 
 
 def windows(demos, horizon: int, n_obs: int, n_act: int, keys=OBS_KEYS) -> tuple[torch.Tensor, torch.Tensor]:
@@ -44,25 +44,6 @@ def windows(demos, horizon: int, n_obs: int, n_act: int, keys=OBS_KEYS) -> tuple
             obs_w.append(obs[idx[:n_obs]])
             act_w.append(act[idx])
     return torch.from_numpy(np.stack(obs_w)), torch.from_numpy(np.stack(act_w))
-
-
-class EMA:
-    """Diffusion Policy's EMA schedule: decay = 1 - (1 + step)^-0.75, capped at 0.9999."""
-
-    def __init__(self, model: torch.nn.Module, power: float = 0.75, max_decay: float = 0.9999):
-        import copy
-
-        self.model = copy.deepcopy(model).eval().requires_grad_(False)
-        self.power, self.max_decay, self.step = power, max_decay, 0
-
-    @torch.no_grad()
-    def update(self, model: torch.nn.Module) -> None:
-        self.step += 1
-        decay = min(self.max_decay, max(0.0, 1 - (1 + self.step) ** -self.power))
-        for e, p in zip(self.model.parameters(), model.parameters()):
-            e.mul_(decay).add_(p.detach(), alpha=1 - decay)
-        for e, b in zip(self.model.buffers(), model.buffers()):
-            e.copy_(b)
 
 
 def init_from(policy: DiffusionTransformerLowdimPolicy, path: Path) -> None:
@@ -125,7 +106,7 @@ def main(argv=None) -> None:
     policy.action_normalizer.fit(act_w)
     if args.init is not None:
         init_from(policy, args.init)
-    ema = EMA(policy)
+    ema = EMA(policy, lambda n: min(0.9999, max(0.0, 1 - (1 + n) ** -0.75)))  # Diffusion Policy's schedule
     opt = torch.optim.AdamW(policy.model.parameters(), lr=args.lr, betas=(0.9, 0.95), weight_decay=1e-3)
     warmup = max(1, min(500, args.steps // 10))
     sched = torch.optim.lr_scheduler.LambdaLR(
@@ -135,13 +116,7 @@ def main(argv=None) -> None:
     step, losses = 0, []
     if args.resume and state_path.exists():
         st = torch.load(state_path, map_location="cpu", weights_only=False)
-        policy.load_state_dict(st["policy"])
-        ema.model.load_state_dict(st["ema"])
-        ema.step = st["ema_step"]
-        opt.load_state_dict(st["opt"])
-        sched.load_state_dict(st["sched"])
-        step, losses = st["step"], st["losses"]
-        torch.set_rng_state(st["rng"])
+        step, losses = restore_training_state(st, "policy", policy, ema, opt, sched)
         print(f"resumed at step {step}")
     gen = torch.Generator().manual_seed(args.seed + step)
     t0 = time.time()
@@ -164,10 +139,7 @@ def main(argv=None) -> None:
             if step % 50 == 0:
                 bar.set_postfix(loss=f"{np.mean(losses[-50:]):.4f}")
             if step % args.save_every == 0 or step == args.steps:
-                with atomic_path(state_path) as tmp:
-                    torch.save({"policy": policy.state_dict(), "ema": ema.model.state_dict(), "ema_step": ema.step,
-                                "opt": opt.state_dict(), "sched": sched.state_dict(), "step": step,
-                                "losses": losses, "rng": torch.get_rng_state()}, tmp)
+                save_training_state(state_path, "policy", policy, ema, opt, sched, step, losses)
     meta = provenance(seeds={"train": args.seed})
     meta.update(init=str(args.init) if args.init else None, data=str(args.data), demos=len(demos), windows=len(obs_w), steps=args.steps, steps_done=step,
                 batch=args.batch,
