@@ -55,7 +55,7 @@ sys.exit(0 if m["history"][-1]["epoch"] >= m["epochs"] else 1)' "checkpoints/pru
 }
 
 # train_named NAME ARGS...: eval/train_pruner.py on the robot_task's trajectories (paired, resumable;
-# skipped when checkpoints/pruners/NAME exists); NTRAIN / NVAL (default 16) / EPOCHS set the sizes.
+# skipped when its training finished: trained); NTRAIN / NVAL (default 16) / EPOCHS set the sizes.
 train_named() {
   local name=$1; shift
   trained "$name" || python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
