@@ -8,8 +8,8 @@ output of the last call that computed it, not necessarily the previous call's. E
 held-out recorded episodes (index >= ``--first-episode``, past the pruners' training and validation
 sets) one episode at a time with their recorded observations and noise, and
 ``Summary.rollout_ages`` gives the age of every rollout decision (1 = the previous call's output).
-Writes ``results/robot/rollout_age_<policy>.json`` (the task, plus the checkpoint's name unless it is the
-bundled one) (one entry per method, merged with earlier runs).
+Writes ``results/robot/rollout_age_<policy>.json``, one entry per method, merged with earlier runs
+(``<policy>``: the task, plus the checkpoint's name unless it is the bundled one).
 """
 from __future__ import annotations
 
