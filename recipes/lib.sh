@@ -49,9 +49,8 @@ all_episodes() { [ -z "${ALL_EPISODES:-}" ] || echo --all-episodes; }
 # trained NAME: whether checkpoints/pruners/NAME holds a finished training (eval/train_pruner.py writes
 # the best epoch so far after every epoch, so an interrupted run leaves a checkpoint that is not done).
 trained() {
-  [ -f "checkpoints/pruners/$1.json" ] && python -c 'import json, sys
-m = json.load(open(sys.argv[1]))["metadata"]
-sys.exit(0 if m["history"][-1]["epoch"] >= m["epochs"] else 1)' "checkpoints/pruners/$1.json"
+  [ -f "checkpoints/pruners/$1.json" ] && python -c 'import sys; from tts.training import training_finished
+sys.exit(0 if training_finished(sys.argv[1]) else 1)' "checkpoints/pruners/$1.json"
 }
 
 # train_named NAME ARGS...: eval/train_pruner.py on the robot_task's trajectories (paired, resumable;

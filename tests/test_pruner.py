@@ -577,3 +577,19 @@ def test_pruner_tools_of_a_policy_that_never_succeeds_use_every_episode(tmp_path
     # the shorter episode, padding in the lockstep replay, is not counted
     assert res["episodes"] == "2..3" and res["calls"] == 5
     assert json.loads((tmp_path / "agreement.json").read_text())["calls"] == 5
+
+
+def test_a_pruner_checkpoint_of_an_interrupted_training_is_not_finished(tmp_path):
+    """fit() writes the best epoch after every epoch: the recipes (recipes/lib.sh `trained`) resume a
+    training whose checkpoint's history stops short of its epochs instead of skipping it."""
+    import json
+
+    from tts.training import training_finished
+
+    def write(epochs, done):
+        meta = {"epochs": epochs, "history": [{"epoch": e} for e in range(done + 1)]}
+        (tmp_path / "p.json").write_text(json.dumps({"metadata": meta}))
+        return training_finished(tmp_path / "p.json")
+
+    assert not training_finished(tmp_path / "missing.json")
+    assert not write(20, 3) and write(20, 20) and write(3, 3)

@@ -31,7 +31,7 @@ from .plans import COMPUTE, DIRECTIONS, check_directions, check_sparsity, from_t
 from .pruner import PrunerModule, PrunerPlan, save_pruner
 from .static_search import steps_grid
 
-__all__ = ["GridSource", "PrunerTrainingConfig", "RecordingPlan", "fit", "mean_of", "read_grid"]
+__all__ = ["GridSource", "PrunerTrainingConfig", "RecordingPlan", "fit", "mean_of", "read_grid", "training_finished"]
 
 # a decision grid [K, nb]: a schedule JSON path (eval/search_static.py), "every_n:N", a tensor of codes,
 # or one "CFTR" string per step
@@ -205,6 +205,17 @@ def _check_resume(state: dict, pruner: PrunerModule, config: PrunerTrainingConfi
         pruner.load_state_dict(state["pruner"])
     except RuntimeError as e:  # a state written before the pruner's config was recorded in it
         raise ValueError(f"{path} holds the training state of a different pruner: {e}") from None
+
+
+def training_finished(checkpoint_json: Union[str, Path]) -> bool:
+    """Whether the pruner checkpoint whose ``.json`` is ``checkpoint_json`` holds a finished training:
+    :func:`fit` writes the best epoch so far after every epoch, so an interrupted run leaves a
+    checkpoint whose history stops short of its ``epochs``. False when the file does not exist."""
+    path = Path(checkpoint_json)
+    if not path.exists():
+        return False
+    meta = json.loads(path.read_text())["metadata"]
+    return bool(meta.get("history")) and meta["history"][-1]["epoch"] >= meta["epochs"]
 
 
 def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Callable, validate: Callable[[], list],
