@@ -17,7 +17,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, write_atomic  # noqa: E402
-from common.stats import paired_score_difference, paired_vs_dense, policy_of  # noqa: E402
+from common.stats import paired_score_difference, paired_vs_dense, policy_of, pooled  # noqa: E402
 from common import frontier  # noqa: E402
 from robot_suite.tasks import TASKS  # noqa: E402
 
@@ -90,20 +90,17 @@ def steps_table(folder: Path) -> str:
     rows = ["| policy | " + " | ".join(f"`{m}`" for m in methods) + " | dense - best 3-step |",
             "|---|" + "---|" * (len(methods) + 1)]
 
-    def pooled(policy: str, m: str):
+    def pooled_rate(policy: str, m: str):
         rs = runs.get((policy, m))
-        if not rs:
-            return None, 0
-        n = sum(r["episodes_done"] for r in rs)
-        return sum(r["success_rate"] * r["episodes_done"] for r in rs) / n, n
+        return pooled(rs) if rs else (None, 0)
 
     for policy in sorted({p for p, _ in runs}):
         cells = []
         for m in methods:
-            rate, n = pooled(policy, m)
+            rate, n = pooled_rate(policy, m)
             cells.append("-" if rate is None else f"{rate:.2f} ({n})")
-        dense, _ = pooled(policy, "dense")
-        three = [pooled(policy, m)[0] for m in methods if m != "dense" and _few_step_key(m)[2] == 3]
+        dense, _ = pooled_rate(policy, "dense")
+        three = [pooled_rate(policy, m)[0] for m in methods if m != "dense" and _few_step_key(m)[2] == 3]
         three = [x for x in three if x is not None]
         gap = f"{dense - max(three):+.2f}" if dense is not None and three else "-"
         rows.append(f"| {policy} | " + " | ".join(cells) + f" | {gap} |")
@@ -172,7 +169,7 @@ def coverage_table(folder: Path) -> str:
     order = {k: (k[0], -computed_steps(v[0]), k[1]) for k, v in runs.items()}
 
     def coverage(key):
-        return sum(r["mean_max_coverage"] * r["episodes_done"] for r in runs[key]) / sum(r["episodes_done"] for r in runs[key])
+        return pooled(runs[key], "mean_max_coverage")[0]
 
     def vs_best_sampler(policy: str, method: str) -> str:
         if method == "dense" or FEW_STEP.match(method):
@@ -187,8 +184,7 @@ def coverage_table(folder: Path) -> str:
 
     for (policy, method) in sorted(runs, key=order.get):
         rs = runs[(policy, method)]
-        n = sum(r["episodes_done"] for r in rs)
-        succ = sum(r["success_rate"] * r["episodes_done"] for r in rs) / n
+        succ, n = pooled(rs)
         cov = coverage((policy, method))
         diff = None if method == "dense" else paired_score_difference(rs, runs.get((policy, "dense"), []))
         paired = "-" if diff is None else f"{diff[0]:+.3f} ({diff[1]:+.3f}, {diff[2]:+.3f}; {diff[3]})"
@@ -292,13 +288,12 @@ def table7(folder: Path) -> str:
             if not rs:
                 cells.append("-")
                 continue
-            n = sum(r["episodes_done"] for r in rs)
             if rs[0].get("mean_max_coverage") is not None:
-                cov = sum(r["mean_max_coverage"] * r["episodes_done"] for r in rs) / n
+                cov, n = pooled(rs, "mean_max_coverage")
                 d = None if pattern == "dense" else paired_score_difference(rs, dense)
                 cells.append(f"coverage {cov:.3f} ({n})" + ("" if d is None else f"; {d[0]:+.3f} ({d[1]:+.3f}, {d[2]:+.3f})"))
                 continue
-            rate = sum(r["success_rate"] * r["episodes_done"] for r in rs) / n
+            rate, n = pooled(rs)
             paired = "" if pattern == "dense" else "; " + paired_vs_dense(rs, dense).split(" on ")[0]
             cells.append(f"{rate:.2f} ({n}){paired}")
         rows.append(f"| {label} | " + " | ".join(cells) + " |")
@@ -476,8 +471,7 @@ def headline_robot(folder: Path) -> str:
             rs = runs.get((task, method))
             if not rs:
                 continue
-            n = sum(r["episodes_done"] for r in rs)
-            success = sum(r["success_rate"] * r["episodes_done"] for r in rs) / n
+            success, n = pooled(rs)
             paired = "-" if method == "dense" else paired_vs_dense(rs, runs.get((task, "dense"), [])).split(" on ")[0]
             sp = speed.get((task, method), {})
             sp_text = " / ".join(f"{sp[b]:.2f}x" if b in sp else "-" for b in (1, 28)) if sp else "-"

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from .stats import mean_interval, newcombe_paired, paired_counts, paired_score_difference, policy_of, wilson
+from .stats import mean_interval, newcombe_paired, paired_counts, paired_score_difference, policy_of, pooled, wilson
 
 __all__ = ["Point", "family", "frontier_points", "on_frontier", "beats_fewer_steps"]
 
@@ -89,7 +89,7 @@ def frontier_points(folder: Path, policy: str, batch: int) -> list[Point]:
             mean, lo, hi = mean_interval([e["max_coverage"] for r in rs for e in r["episodes"]])
             score, interval = mean, (max(lo, 0.0), min(hi, 1.0))
         else:
-            k = round(sum(r["success_rate"] * r["episodes_done"] for r in rs))
+            k = round(pooled(rs)[0] * n)
             score, interval = k / n, wilson(k, n)
         points.append(Point(method, score, n, interval, lat["speedup"], lat["latency_ms"], lat["computed_steps"], rs,
                             "coverage" if coverage else "success"))

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Optional
 
 __all__ = ["VALIDATION_SEEDS", "policy_of", "paired_counts", "paired_vs_dense", "wilson", "newcombe_paired",
-           "sign_test_p", "mean_interval", "paired_score_difference"]
+           "sign_test_p", "mean_interval", "paired_score_difference", "pooled"]
 
 VALIDATION_SEEDS = 400000  # first seeds from here on are validation episodes (recipes/steps_matter.sh)
 
@@ -26,6 +26,13 @@ def policy_of(r: dict) -> str:
     if isinstance(seeds, list) and seeds and seeds[0] >= VALIDATION_SEEDS:
         label += ", validation"
     return label
+
+
+def pooled(runs: list[dict], key: str = "success_rate") -> tuple[float, int]:
+    """A per-run rate (``success_rate``, or ``mean_max_coverage``) pooled over runs, weighted by their
+    episodes, and the number of episodes."""
+    n = sum(r["episodes_done"] for r in runs)
+    return sum(r[key] * r["episodes_done"] for r in runs) / n, n
 
 
 def paired_counts(runs: list[dict], other: list[dict]) -> tuple[int, int, int, int]:
