@@ -82,7 +82,8 @@ def main(argv=None) -> dict:
     if config.prior is not None:
         grid = read_grid(config.prior, steps=args.steps, branches=2 * cfg.depth, reuse=config.prior_reuse)
         pruner.set_prior(grid, margin=config.prior_margin)
-    train_plan = PrunerPlan(pruner, mode="ste", sparsity=config.sparsity if config.train_budget else None)
+    train_plan = PrunerPlan(pruner, mode="ste", sparsity=config.sparsity if config.train_budget else None,
+                            autocast=config.autocast)
 
     def run(plan, idx, opt=None) -> dict:
         labels = torch.as_tensor(idx % n_cls)

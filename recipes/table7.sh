@@ -10,9 +10,11 @@
 #   pruners   TTS pruners with the reference recipe (eval/train_pruner.py --recipe reference: hidden 512,
 #             8 heads, FF 1024, head bias zero, AdamW 1e-4, 20 epochs, batches of 16 full-horizon
 #             episodes, unpaired noise), from scratch for each direction set (forward / timestep /
-#             rollout / all three) and, for all three, from the searched prior. A reference-length
-#             training is hours on 2 CPU cores (the device machine of a session, when lent, is the
-#             place for it); each resumes from runs/ after an interruption
+#             rollout / all three) and, for all three, from the searched prior; the pruner's
+#             forward/backward in bfloat16 autocast (PRECISION=float32 for full precision). A
+#             reference-length training is hours on 2 CPU cores (the device machine of a session, when
+#             lent, is the place for it); each resumes from runs/ after an interruption. PRUNERS picks
+#             some of "omni prior forward timestep rollout" (e.g. two at once with THREADS=1 each)
 #   analysis  the prior pruner's agreement with the prior on held-out episodes, the oracle headroom
 #             around the searched steps, the mask and rollout-feature-similarity figures
 # Every step is skipped when its output exists. ALL_EPISODES=1 uses every recorded episode, not only
@@ -52,16 +54,17 @@ reference_pruner() {  # NAME DIRECTIONS [ARGS...]: the reference recipe on 96 tr
   local name=$1 dirs=$2; shift 2
   trained "$name" || python eval/train_pruner.py --recipe reference --trajectories "$TRAJ" \
       --checkpoint "$CKPT" --out "checkpoints/pruners/$name" --directions "$dirs" --sparsity 0.93 \
-      --n-train 96 --n-val 16 --threads "${THREADS:-2}" --run-dir "runs/$name" --resume $(all_episodes) "$@"
+      --n-train 96 --n-val 16 --precision "${PRECISION:-bfloat16}" --threads "${THREADS:-2}" \
+      --run-dir "runs/$name" --resume $(all_episodes) "$@"
 }
 if [[ $parts == *pruners* ]]; then
-  reference_pruner "$omni" forward,timestep,rollout
-  evaluate --method "pruner:checkpoints/pruners/$omni"
-  reference_pruner "$prior" forward,timestep,rollout --prior "$steps"
-  evaluate --method "pruner:checkpoints/pruners/$prior"
-  for dirs in forward timestep rollout; do
-    name=${policy}_reference_${dirs}_0.93
-    reference_pruner "$name" "$dirs"
+  for which in ${PRUNERS:-omni prior forward timestep rollout}; do
+    case $which in
+      omni) reference_pruner "$omni" forward,timestep,rollout; name=$omni ;;
+      prior) reference_pruner "$prior" forward,timestep,rollout --prior "$steps"; name=$prior ;;
+      forward|timestep|rollout) name=${policy}_reference_${which}_0.93; reference_pruner "$name" "$which" ;;
+      *) echo "PRUNERS: unknown pruner $which (omni, prior, forward, timestep, rollout)" >&2; exit 2 ;;
+    esac
     evaluate --method "pruner:checkpoints/pruners/$name"
   done
 fi

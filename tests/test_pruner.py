@@ -7,7 +7,7 @@ import tts
 from test_robot_pipeline import obs_batch, small_policy
 from tts.gates import argmax_codes, budget_codes, reuse_fraction, ste_gates
 from tts.plans import COMPUTE, FORWARD, ROLLOUT, TIMESTEP
-from tts.pruner import Pruner, PrunerConfig, PrunerPlan, load_pruner, pruner_loss, save_pruner
+from tts.pruner import Pruner, PrunerConfig, PrunerPlan, dropout_fast, load_pruner, pruner_loss, save_pruner
 from tts.trajectories import episode_groups, lockstep_frames, split_episodes
 
 
@@ -141,14 +141,76 @@ def test_pruner_shapes_query_cache_and_errors():
         assert (argmax_codes(biased.eval()(mem), biased.config.codes)[:, 1:] == TIMESTEP).all()
 
 
+def test_shared_query_cross_attention_equals_the_module_on_expanded_queries():
+    """The decoder layer projects the shared queries once and applies Wo to the memory's values: the
+    same output and gradients as nn.MultiheadAttention run on the queries copied per sample."""
+    torch.manual_seed(0)
+    pr = Pruner(PrunerConfig(memory_dim=12, num_branches=6, hidden=32, heads=4, ffn=64, dropout=0.0))
+    layer = pr.layer
+    q = torch.randn(6, 32, requires_grad=True)
+    mem = torch.randn(5, 3, 32, requires_grad=True)
+    fast = layer._cross(q, mem)
+    ref = layer.cross_attn(layer.norm2(q).expand(5, -1, -1), mem, mem, need_weights=False)[0]
+    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6)
+    w = torch.randn_like(ref)
+    grads_fast = torch.autograd.grad((w * fast).sum(), [q, mem, layer.cross_attn.in_proj_weight])
+    grads_ref = torch.autograd.grad((w * ref).sum(), [q, mem, layer.cross_attn.in_proj_weight])
+    for a, b in zip(grads_fast, grads_ref):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
+def test_fast_dropout_drops_p_keeps_the_mean_and_is_identity_in_eval():
+    torch.manual_seed(0)
+    x = torch.ones(1000, 1001)  # an odd element count: the mask is cut from whole int64 draws
+    y = dropout_fast(x, 0.1, True)
+    dropped = float((y == 0).float().mean())
+    assert dropped == pytest.approx(0.1, abs=0.003)
+    assert float(y.mean()) == pytest.approx(1.0, abs=0.01)
+    assert y.unique().tolist() == pytest.approx([0.0, 1 / 0.9])
+    assert dropout_fast(x, 0.1, False) is x and dropout_fast(x, 0.0, True) is x
+    g = torch.ones(3, 5, requires_grad=True)
+    out = dropout_fast(g, 0.5, True)
+    out.sum().backward()
+    torch.testing.assert_close(g.grad, out.detach())  # gradient passes exactly where the value did
+
+
+def test_bfloat16_autocast_training_gates_match_float32_and_reach_the_pruner():
+    """PrunerPlan(autocast=bfloat16): mixed-precision training; the gates stay float32 and, with clear
+    margins between the options, take the same decisions as in float32."""
+    pol = small_policy(num_steps=6)
+    pr = _pruner(nb=6, dim=32).train()  # dropout 0: the two runs see the same network
+    with torch.no_grad():
+        pr.head.bias.copy_(torch.tensor([0.0, 4.0, 0.0, 0.0]))  # forward reuse wins by a wide margin
+    obs = [obs_batch(2, i) for i in range(2)]
+    gates = {}
+    for name, dtype in (("float32", None), ("bfloat16", torch.bfloat16)):
+        plan = PrunerPlan(pr, mode="ste", autocast=dtype)
+        with tts.accelerate(pol, plan=plan):
+            for o in obs:
+                pred = pol.predict_action(o, [torch.Generator().manual_seed(1)] * 2, enable_grad=True)["action_pred"]
+        gates[name] = plan.gates
+        pr.zero_grad()
+        pruner_loss(pred, pred.detach() + 0.1, plan.gates, 0.5)["loss"].backward()
+        assert sum(float(p.grad.abs().sum()) for p in pr.parameters() if p.grad is not None) > 0
+    assert gates["bfloat16"].dtype == torch.float32
+    torch.testing.assert_close(gates["bfloat16"].detach(), gates["float32"].detach())
+    with pytest.raises(ValueError, match="autocast applies to training"):
+        PrunerPlan(pr, mode="argmax", autocast=torch.bfloat16)
+    from tts.training import PrunerTrainingConfig
+
+    with pytest.raises(ValueError, match="precision must be one of"):
+        PrunerTrainingConfig(out="x", precision="float16")
+
+
 def test_pruner_macs_counted_and_small_next_to_the_policy():
     pol = small_policy(num_steps=10)
     pr = _pruner(nb=6, dim=32)
     K = pol.cfg.num_inference_steps
     m = pr.macs(K, 3)
     h, q, tc = 16, 6, 3
-    # analytic lower bound: memory projection + query cross-attention + FFN + head, per step
-    per_step = tc * 32 * h + q * h * h * 2 + tc * h * h * 2 + q * h * 32 * 2 + q * h * 4
+    # analytic lower bound per step: memory projection, keys, values and their output projection
+    # (the shared queries are projected once per call), FFN, head
+    per_step = tc * 32 * h + tc * h * h * 3 + q * h * 32 * 2 + q * h * 4
     assert per_step * K <= m <= 2 * per_step * K
     acc = tts.accelerate(pol, pruner=pr)
     pol.predict_action(obs_batch(1))
@@ -291,7 +353,7 @@ TRAIN_PRUNER_METADATA = {
     "prior_margin", "tie_branches", "step_query", "val_mode", "seed", "run_dir", "resume", "n_train", "n_val", "paired",
     "loss_space", "static", "head_bias", "init_schedule", "threads", "n_train_episodes", "n_val_episodes", "policy",
     "trajectory_collection", "best_epoch", "history", "train_seconds", "pruner_macs_per_call", "heads", "ffn",
-    "lr_schedule", "clip_grad", "recipe", "all_episodes"}
+    "lr_schedule", "clip_grad", "recipe", "all_episodes", "precision"}
 
 
 def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
@@ -320,6 +382,8 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
     # resuming a finished run trains no further epoch and keeps the history
     train_pruner.main(args + ["--resume"])
     assert len(load_pruner(out).metadata["history"]) == 3
+    with pytest.raises(ValueError, match="other precision"):  # mixed precision would change the run
+        train_pruner.main(args + ["--resume", "--precision", "bfloat16"])
     import robot  # the eval report reads the pruner's training metadata from the same pair of files
     from common.methods import parse_method
 

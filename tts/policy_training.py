@@ -158,7 +158,8 @@ def train_policy_pruner(policy, episodes: Sequence[dict], config: PolicyPrunerTr
         torch.manual_seed(config.seed)
         pruner = build_policy_pruner(policy, config)
     directions = config.directions
-    train_plan = PrunerPlan(pruner, mode="ste", sparsity=config.sparsity if config.train_budget else None)
+    train_plan = PrunerPlan(pruner, mode="ste", sparsity=config.sparsity if config.train_budget else None,
+                            autocast=config.autocast)
 
     def train_epoch(opt, rng, noise_rng, epoch):
         groups = episode_groups(train, config.batch, rng)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import tts
 from common import provenance
+from tts.training import PRECISIONS
 
 __all__ = ["add_training_args", "training_metadata"]
 
@@ -48,6 +49,9 @@ def add_training_args(ap: argparse.ArgumentParser, *, sparsity: float, direction
     ap.add_argument("--lr-schedule", choices=["cosine", "linear"], default="cosine",
                     help="per epoch: warm-up over the first fifth, then cosine or linear decay")
     ap.add_argument("--clip-grad", type=_clip, default=1.0, help="gradient-norm clip, or 'none'")
+    ap.add_argument("--precision", choices=sorted(PRECISIONS), default="float32",
+                    help="the pruner's forward/backward in training: float32, or bfloat16 autocast (mixed "
+                         "precision; about 2x faster on CPUs with bfloat16 instructions)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--run-dir", type=Path, default=None)
     ap.add_argument("--resume", action="store_true")
