@@ -8,6 +8,7 @@
                                                           # recipes/pruner_data_efficiency.sh)
     python eval/figures.py frontier --task lift [--checkpoint checkpoints/lift_mh_dpt]
                                                           # success vs speed-up per batch size (eval/frontier_latency.py)
+    python eval/figures.py image-frontier                 # digits DiT: FID vs speed-up (eval/image_latency.py)
 
 Masks and similarities use held-out recorded episodes (index >= ``--first-episode``, past the
 pruner's training and validation sets) with the recorded noise seeds.
@@ -253,10 +254,52 @@ def frontier(args) -> Path:
     return out
 
 
+def image_frontier(args) -> Path:
+    """The digits DiT: FID (bootstrap 95% interval) against speed-up over dense DDIM-50, one panel per
+    batch size of results/image/frontier_latency.json; DDIM-k as a line, every other method a point
+    (filled: the 50-step base; open: a shorter base, ``+ddim:K``)."""
+    plt = _plt()
+    folder = REPO / "results" / "image"
+    latency = folder / "frontier_latency.json"
+    batches = sorted({r["batch"] for r in json.loads(latency.read_text())["rows"]}) if latency.exists() else [1]
+    fig, axes = plt.subplots(1, len(batches), figsize=(6.5 * len(batches), 4.6), squeeze=False)
+    for ax, batch in zip(axes[0], batches):
+        points = frontier_join.image_frontier_points(folder, latency, batch)
+        if not points:
+            ax.set_title(f"digits DiT, batch {batch}: not measured")
+            continue
+        line = sorted((p for p in points if p.family in ("ddim", "dense")), key=lambda p: p.speedup)
+        ax.plot([p.speedup for p in line], [p.score for p in line], "-o", color=FAMILY_STYLE["ddim"][0], ms=4,
+                label="DDIM-k (dense: k = 50)")
+        for p in line:
+            ax.annotate(str(p.computed_steps), (p.speedup, p.score), fontsize=7, color=FAMILY_STYLE["ddim"][0],
+                        xytext=(3, 3), textcoords="offset points")
+        for p in points:
+            if p.family in ("ddim", "dense"):
+                continue
+            shorter = "+ddim:" in p.method or "+dpm:" in p.method
+            ax.errorbar([p.speedup], [p.score], yerr=[[p.score - p.interval[0]], [p.interval[1] - p.score]],
+                        fmt="D", color="#e6550d", mfc="white" if shorter else "#e6550d", ms=5, capsize=2)
+            ax.annotate(p.method if len(p.method) < 34 else p.method[:32] + "..", (p.speedup, p.score), fontsize=6,
+                        xytext=(4, -9), textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("sampling speed-up over dense DDIM-50 (same process)")
+        ax.set_ylabel("FID, 2000 samples (lower is better)")
+        ax.set_title(f"digits DiT, batch {batch}")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    out = DOCS / "frontier_digits.png"
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("figure", choices=["masks", "similarity", "data-efficiency", "frontier"])
-    ap.add_argument("--task", required=True)
+    ap.add_argument("figure", choices=["masks", "similarity", "data-efficiency", "frontier", "image-frontier"])
+    ap.add_argument("--task", help="the robot task (every figure but image-frontier)")
     ap.add_argument("--checkpoint", type=Path)
     ap.add_argument("--pruner", type=Path)
     ap.add_argument("--sparsity", type=float, default=None, help="masks: exact-budget mode")
@@ -266,8 +309,11 @@ def main(argv=None) -> None:
     ap.add_argument("--calls", type=int, default=6, help="masks: rollout iterations shown")
     add_all_episodes_option(ap)
     args = parse_args(ap, argv)
+    if args.task is None and args.figure != "image-frontier":
+        ap.error(f"{args.figure} needs --task")
     DOCS.mkdir(exist_ok=True)
-    fn = {"masks": masks, "similarity": similarity, "data-efficiency": data_efficiency, "frontier": frontier}[args.figure]
+    fn = {"masks": masks, "similarity": similarity, "data-efficiency": data_efficiency, "frontier": frontier,
+          "image-frontier": image_frontier}[args.figure]
     print(f"wrote {fn(args)}")
 
 

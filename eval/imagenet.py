@@ -53,7 +53,8 @@ from common import parse_args, provenance, write_json  # noqa: E402
 
 from common.methods import IMAGE_KINDS, VOCABULARY, Method, parse_method  # noqa: E402
 from image_suite.sampling import (SD_VAE_SCALE, Meter, build_accelerator, dense_macs_per_image,  # noqa: E402
-                                  describe, index_seed, load_vae, sample_noise, sampler_of, shard, to_uint8_rgb)
+                                  describe, index_seed, load_vae, sample_noise, sampler_of, sampler_steps, shard,
+                                  to_uint8_rgb)
 from tts.adapters.dit import load_dit, sample_dit  # noqa: E402
 from tts.io import atomic_path  # noqa: E402
 
@@ -95,14 +96,15 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
     ap.add_argument("--ref-cache", default=None, help="cache for reference stats computed from images (.npz)")
     ap.add_argument("--inception", default=None, help="FID Inception weights (see eval/fid.py)")
     ap.add_argument("--fid-batch", type=int, default=50)
+    ap.add_argument("--fid-bootstrap", type=int, default=50,
+                    help="resamples of the FID's 95%% bootstrap interval over the samples (0: none)")
     ap.add_argument("--cpu", action="store_true", help="run on CPU even if CUDA is available")
     ap.add_argument("--no-progress", action="store_true")
     args = parse_args(ap, argv)
     method = parse_method(args.method, kinds=IMAGE_KINDS, forecast=args.forecast)
-    if method.kind in ("ddim", "dpm"):  # fewer steps of the untouched model
-        if method.sampler.spacing is not None:
-            ap.error(f"{args.method}: the image suite spaces timesteps as DiT does (leading); drop the spacing")
-        args.steps, args.scheduler = method.n, method.kind
+    if method.kind in ("ddim", "dpm") and method.sampler.spacing is not None:
+        ap.error(f"{args.method}: the image suite spaces timesteps as DiT does (leading); drop the spacing")
+    args.steps, args.scheduler = sampler_steps(method, args.steps, args.scheduler)
     check_args(args, method)
 
     model = load_dit(args.model, config=args.config)  # clear FileNotFoundError before any process group starts
@@ -250,7 +252,8 @@ def main(argv: Optional[Sequence[str]] = None) -> dict[str, Any]:
         progress = not args.no_progress
         ref = fid.reference_stats(args.ref, cache=args.ref_cache, model=inception, batch_size=args.fid_batch,
                                   progress=progress)
-        result.update(fid.fid_sfid(arr, ref, model=inception, batch_size=args.fid_batch, progress=progress))
+        result.update(fid.fid_sfid(arr, ref, model=inception, batch_size=args.fid_batch, progress=progress,
+                                   bootstrap=args.fid_bootstrap))
         result.update(ref=str(args.ref), inception=getattr(inception, "weights_source", None),
                       fid_seconds=time.perf_counter() - t0)
     result["provenance"] = provenance(seeds={"noise": args.seed, "per_sample": "SeedSequence([seed, index])",

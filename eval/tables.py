@@ -326,6 +326,30 @@ def frontier_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+def image_frontier_table(folder: Path) -> str:
+    """FID against speed-up over dense DDIM-50 per batch size (eval/common/frontier.py): every image run
+    with a row in results/image/frontier_latency.json."""
+    rows = ["| batch | method | sampler steps | FID [95% CI] | sFID | speed-up vs dense | ms per call | on the frontier | "
+            "sparse: FID minus the best fewer-step sampler at least as fast (conservative 95% CI) |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    latency = folder / "frontier_latency.json"
+    if not latency.exists():
+        return "\n".join(rows) + "\n"
+    for batch in sorted({r["batch"] for r in json.loads(latency.read_text())["rows"]}):
+        points = frontier.image_frontier_points(folder, latency, batch)
+        for p in sorted(points, key=lambda q: -q.speedup):
+            versus = "-"
+            if p.family == "sparse":
+                vs = frontier.beats_fewer_steps(p, points)
+                versus = "no fewer-step sampler as fast" if vs is None else (
+                    f"`{vs[0].method}`: {vs[1]:+.2f} ({vs[2]:+.2f}, {vs[3]:+.2f})" + (" **beats it**" if vs[3] < 0 else ""))
+            sfid = p.runs[0].get("sfid")
+            rows.append(f"| {batch} | `{p.method}` | {p.computed_steps} | {p.score:.2f} [{p.interval[0]:.2f}, "
+                        f"{p.interval[1]:.2f}] | {'-' if sfid is None else f'{sfid:.2f}'} | {p.speedup:.2f}x | "
+                        f"{p.latency_ms:.1f} | {'yes' if frontier.on_frontier(p, points) else ''} | {versus} |")
+    return "\n".join(rows) + "\n"
+
+
 def agreement_table(folder: Path) -> str:
     """How often a pruner's decisions equal its prior (eval/pruner_agreement.py: agreement_*.json)."""
     rows = ["| task | pruner | prior | exact budget | episodes not trained on | calls identical to the prior | "
@@ -529,7 +553,7 @@ def main() -> None:
     readme = {"headline-robot": headline_robot(robot)}
     if any(image.glob("digits_*.json")):
         sample_grids(image)
-        fill(docs / "image.md", {"image": image_table(image)})
+        fill(docs / "image.md", {"image": image_table(image), "image-frontier": image_frontier_table(image)})
         readme["headline-image"] = headline_image(image)
     fill(REPO / "README.md", readme)
     print(f"filled {docs / 'robot.md'}, {docs / 'image.md'} and README.md")

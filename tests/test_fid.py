@@ -271,6 +271,12 @@ def test_reference_stats_cache(inception, tmp_path):
     direct = fid.Stats.from_features(p, s)
     np.testing.assert_allclose(st.mu, direct.mu, atol=1e-6)
     np.testing.assert_allclose(st.sigma_s, direct.sigma_s, atol=1e-6)
+    # the bootstrap interval of fid_sfid comes from the same pool features as the FID itself
+    out = fid.fid_sfid(_images(5, 3, 24, 24), st, model=inception, progress=False, bootstrap=4)
+    assert out["fid_interval"] == list(fid.fid_interval(fid.extract_features(_images(5, 3, 24, 24), inception)[0],
+                                                        st, out["fid"], resamples=4))
+    with pytest.raises(ValueError, match="needs the samples' images"):
+        fid.fid_sfid(st, st, bootstrap=4)
 
 
 @pytest.mark.slow
@@ -301,3 +307,21 @@ def test_cli_end_to_end(inception, tmp_path):
     np.testing.assert_allclose(r_st.mu_s, rs.mean(0), atol=1e-6)
     expected = _fd_independent(sp.mean(0).astype(np.float64), s_st.sigma, rp.mean(0).astype(np.float64), r_st.sigma)
     assert res["fid"] == pytest.approx(expected, rel=1e-3)
+
+
+def test_fid_bootstrap_interval_covers_the_expected_fid_and_narrows_with_more_samples():
+    from image_suite.fid import Stats, fid_interval
+
+    rng = np.random.default_rng(0)
+    d = 6
+    ref = Stats.from_features(rng.normal(size=(20000, d)))
+    widths = []
+    for n in (400, 4000):
+        # the FID of n samples from N(0.5, I) averaged over fresh sample sets: what the interval is about
+        expected = np.mean([Stats.from_features(rng.normal(0.5, 1.0, size=(n, d))).fid(ref) for _ in range(40)])
+        pool = rng.normal(0.5, 1.0, size=(n, d))
+        fid = Stats.from_features(pool).fid(ref)
+        lo, hi = fid_interval(pool, ref, fid, resamples=200, seed=1)
+        assert lo < fid < hi and lo < expected < hi
+        widths.append(hi - lo)
+    assert widths[1] < widths[0] / 2  # about 1 / sqrt(10)

@@ -125,3 +125,36 @@ def test_searched_steps_on_a_shorter_base_sampler(tmp_path):
         pol.predict_action(obs_batch(2))
         with pytest.warns(UserWarning, match="made for 4 denoising steps but a sampling call ran 3"):
             acc.summary()
+
+
+def test_image_frontier_lower_fid_is_better_and_the_verdict_is_conservative(tmp_path):
+    """Image points: FID runs joined with one latency file; lower FID dominates; a sparse method beats
+    the best fewer-step sampler as fast only when the combined interval lies below zero."""
+    import tables
+    from common import frontier
+
+    def run(method, fid, lo, hi, steps=50):
+        (tmp_path / f"digits_{method.replace(':', '-')}.json").write_text(json.dumps(
+            {"method": method, "fid": fid, "fid_interval": [lo, hi], "sfid": fid + 1, "num_samples": 2000,
+             "steps": steps}))
+
+    run("dense", 40.0, 38.0, 42.0)
+    run("ddim:5", 90.0, 85.0, 95.0, steps=5)
+    run("ddim:10", 60.0, 57.0, 63.0, steps=10)
+    run("every_n:2:timestep", 45.0, 43.0, 47.0)  # as fast as ddim:10, clearly better
+    run("every_n:3:timestep", 61.0, 58.0, 64.0)  # as fast as ddim:10, no better: dominated
+    run("toca:6@0.8", 59.0, 56.0, 62.0)  # not in the latency file: no point
+    methods = {"ddim:5": 10.0, "ddim:10": 5.0, "every_n:2:timestep": 5.0, "every_n:3:timestep": 5.0}
+    latency = tmp_path / "frontier_latency.json"
+    latency.write_text(json.dumps({"rows": [{"batch": 16, "dense_ms": 100.0, "methods": {
+        m: {"ms": 100.0 / s, "speedup": s, "sampler": "ddim:50"} for m, s in methods.items()}}]}))
+    pts = {p.method: p for p in frontier.image_frontier_points(tmp_path, latency, 16)}
+    assert set(pts) == {"dense", *methods} and pts["dense"].speedup == 1.0 and pts["ddim:5"].interval == (85.0, 95.0)
+    on = {m for m, p in pts.items() if frontier.on_frontier(p, list(pts.values()))}
+    assert on == {"dense", "ddim:5", "every_n:2:timestep"}
+    best, diff, lo, hi = frontier.beats_fewer_steps(pts["every_n:2:timestep"], list(pts.values()))
+    assert best.method == "ddim:10" and (diff, lo, hi) == (-15.0, -20.0, -10.0)
+    assert frontier.beats_fewer_steps(pts["every_n:3:timestep"], list(pts.values()))[3] > 0
+    table = tables.image_frontier_table(tmp_path)
+    assert "`every_n:2:timestep` | 50 | 45.00 [43.00, 47.00]" in table and table.count("**beats it**") == 1
+    assert frontier.image_frontier_points(tmp_path, latency, 1) == []

@@ -266,3 +266,27 @@ def test_prior_reuse_maps_every_reuse_decision_to_one_direction():
     assert set(g[base != 0].unique().tolist()) == {tts.plans.ROLLOUT}
     with pytest.raises(ValueError, match="unknown direction"):
         read_grid(Path("every_n:4"), steps=8, branches=3, reuse="sideways")
+
+
+def test_base_sampler_of_an_image_method_and_latency_of_every_sampler_in_one_process(tmp_path):
+    """``SPEC+ddim:K`` samples on K DDIM steps (the same images as ``--steps K``); eval/image_latency.py
+    times fewer-step samplers and methods on their own base against one dense reference."""
+    import image_latency
+    import imagenet
+
+    cfg = DiTConfig(input_size=8, patch_size=2, in_channels=3, hidden_size=32, depth=2, num_heads=2, num_classes=5)
+    save_dit(randomize(DiT(cfg), std=0.03), tmp_path / "tiny")
+    run = ["--model", str(tmp_path / "tiny"), "--num-samples", "2", "--batch", "2", "--no-progress"]
+    based = imagenet.main(run + ["--method", "every_n:2:timestep+ddim:3", "--steps", "6",
+                                 "--out", str(tmp_path / "based.npz")])
+    plain = imagenet.main(run + ["--method", "every_n:2:timestep", "--steps", "3", "--out", str(tmp_path / "plain.npz")])
+    assert based["steps"] == plain["steps"] == 3 and based["method"] == "every_n:2:timestep+ddim:3"
+    with np.load(tmp_path / "based.npz") as a, np.load(tmp_path / "plain.npz") as b:
+        assert np.array_equal(a["arr_0"], b["arr_0"])
+    res = image_latency.main(["--model", str(tmp_path / "tiny"), "--steps", "4", "--batch", "1", "--trials", "1",
+                              "--methods", "ddim:2", "every_n:2:timestep+ddim:3", "--out", str(tmp_path / "lat.json")])
+    rows = res["rows"][0]["methods"]
+    assert rows["ddim:2"]["sampler"] == "ddim:2" and rows["ddim:2"]["macs_ratio"] == pytest.approx(2.0)
+    based = rows["every_n:2:timestep+ddim:3"]
+    assert based["sampler"] == "ddim:3" and based["sparsity_decisions"] == pytest.approx(1 / 3)
+    assert based["macs_ratio"] == pytest.approx(4 / 2, rel=0.1)  # 2 of 3 steps computed, against 4 dense steps

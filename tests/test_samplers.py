@@ -119,9 +119,13 @@ def test_sampler_spec_errors(spec, message):
         parse_method(spec, kinds=ROBOT_KINDS)
 
 
-def test_base_sampler_is_robot_only():
-    with pytest.raises(ValueError, match="applies to engine methods of the robot suite"):
-        parse_method("uniform:0.5:timestep+ddim:20")
+def test_image_engine_methods_take_a_base_sampler_without_spacing():
+    m = parse_method("every_n:2:timestep+ddim:20")  # the image suite's vocabulary
+    assert (m.sampler.scheduler, m.sampler.steps, m.label) == ("ddim", 20, "every_n:2:timestep+ddim:20")
+    with pytest.raises(ValueError, match="drop the spacing"):
+        parse_method("uniform:0.5:timestep+ddim:20:trailing")
+    with pytest.raises(ValueError, match="applies to engine methods"):
+        parse_method("diffusers:taylorseer:2:1+ddim:20")
 
 
 def test_install_policy_sets_the_base_sampler_first():

@@ -8,6 +8,12 @@ method was timed against the same dense reference in one process. A point is on 
 other point is at least as fast and scores at least as high (one of them strictly). A sparse method
 beats fewer steps when its score is significantly higher (paired 95% interval above zero, on the
 same episodes) than the best fewer-step sampler that is at least as fast.
+
+Images (:func:`image_frontier_points`): the score is the FID of an eval/imagenet.py run (lower is
+better) with its bootstrap interval over the samples, the speed against dense DDIM-50 from one
+eval/image_latency.py file. FID intervals are not paired, so a sparse method beats fewer steps only
+when the difference interval built from both intervals (its low end minus the sampler's high end,
+and the reverse) lies below zero: a conservative test.
 """
 from __future__ import annotations
 
@@ -19,7 +25,7 @@ from typing import Optional
 
 from .stats import mean_interval, newcombe_paired, paired_counts, paired_score_difference, policy_of, pooled, wilson
 
-__all__ = ["Point", "family", "frontier_points", "on_frontier", "beats_fewer_steps"]
+__all__ = ["Point", "family", "frontier_points", "image_frontier_points", "on_frontier", "beats_fewer_steps"]
 
 _FEW = re.compile(r"(ddim|dpm):(\d+)(?::(\w+))?$")
 
@@ -52,6 +58,13 @@ class Point:
     @property
     def family(self) -> str:
         return family(self.method)
+
+    @property
+    def lower_is_better(self) -> bool:
+        return self.metric == "fid"
+
+    def at_least_as_good(self, other: "Point") -> bool:
+        return self.score <= other.score if self.lower_is_better else self.score >= other.score
 
 
 def _success_runs(folder: Path, policy: str) -> dict[str, list[dict]]:
@@ -96,19 +109,43 @@ def frontier_points(folder: Path, policy: str, batch: int) -> list[Point]:
     return sorted(points, key=lambda p: p.speedup)
 
 
+def image_frontier_points(folder: Path, latency: Path, batch: int) -> list[Point]:
+    """The image methods with a finished FID run in ``folder`` (``digits_*.json``) and a row at ``batch``
+    in ``latency`` (eval/image_latency.py output); dense included (speed-up 1). Score: FID."""
+    if not latency.exists():
+        return []
+    rows = [r for r in json.loads(latency.read_text())["rows"] if r["batch"] == batch]
+    if not rows:
+        return []
+    lat = dict(rows[0]["methods"], dense={"ms": rows[0]["dense_ms"], "speedup": 1.0})
+    points = []
+    for path in sorted(folder.glob("digits_*.json")):
+        r = json.loads(path.read_text())
+        method = r.get("method")
+        if r.get("fid") is None or method not in lat:
+            continue
+        lo, hi = r.get("fid_interval") or (float("nan"), float("nan"))
+        points.append(Point(method, r["fid"], r["num_samples"], (lo, hi), lat[method]["speedup"], lat[method]["ms"],
+                            r["steps"], [r], "fid"))
+    return sorted(points, key=lambda p: p.speedup)
+
+
 def on_frontier(p: Point, points: list[Point]) -> bool:
-    """No other point is at least as fast and scores as high, and strictly better in one of them."""
-    return not any(q is not p and q.speedup >= p.speedup and q.score >= p.score
-                   and (q.speedup > p.speedup or q.score > p.score) for q in points)
+    """No other point is at least as fast and scores as well, and strictly better in one of them."""
+    return not any(q is not p and q.speedup >= p.speedup and q.at_least_as_good(p)
+                   and (q.speedup > p.speedup or q.score != p.score) for q in points)
 
 
 def beats_fewer_steps(p: Point, points: list[Point]) -> Optional[tuple[Point, float, float, float]]:
     """The best fewer-step sampler at least as fast as ``p`` and the paired difference p - it with its
     95% interval, or None when no such sampler was run. ``p`` beats fewer steps when the lower bound
-    is above zero."""
+    is above zero (for FID, lower is better: when the upper bound is below zero)."""
     rivals = [q for q in points if q.family in ("ddim", "ddim-trailing", "dpm") and q.speedup >= p.speedup]
     if not rivals:
         return None
+    if p.lower_is_better:  # FID: unpaired intervals, combined conservatively
+        best = min(rivals, key=lambda q: (q.score, -q.speedup))
+        return best, p.score - best.score, p.interval[0] - best.interval[1], p.interval[1] - best.interval[0]
     best = max(rivals, key=lambda q: (q.score, q.speedup))
     if p.metric == "coverage":
         d = paired_score_difference(p.runs, best.runs)

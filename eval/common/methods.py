@@ -28,9 +28,10 @@ spec                            method
 ``+taylorO`` after a ``file:``, ``pruner:``, ``uniform:`` or ``every_n:`` spec (or ``--forecast O``, a
 separate option) adds a Taylor forecast of order O to timestep reuse; it is part of the row label.
 
-``+ddim:K[:SPACING]`` or ``+dpm:K`` after an engine method (robot suite) runs it on that base sampler
-instead of the policy's own (DDPM-100): e.g. ``uniform:0.65:timestep+ddim:20`` computes 7 of DDIM-20's
-steps. Schedules and pruners must have been made for the base's number of steps.
+``+ddim:K[:SPACING]`` or ``+dpm:K`` after an engine method runs it on that base sampler instead of
+the suite's own (the policy's DDPM-100; the image suite's ``--steps`` / ``--scheduler``): e.g.
+``uniform:0.65:timestep+ddim:20`` computes 7 of DDIM-20's steps. Schedules and pruners must have
+been made for the base's number of steps. The image suite takes no SPACING.
 """
 from __future__ import annotations
 
@@ -45,7 +46,7 @@ __all__ = ["Method", "Sampler", "parse_method", "install", "install_policy", "RO
 VOCABULARY = ("dense | ddim:K[:SPACING] | dpm:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | rotating:RHO:DIRECTION | "
               "file:SCHEDULE.json | "
               "pruner:PATH[@RHO] (+taylorO after any of the four) | taylorseer:N:O | toca:N[:RATIO][@RHO] | duca:N[:RATIO][@RHO] | "
-              "diffusers:fbc[:THRESHOLD][@RHO] | diffusers:taylorseer:N:O; robot engine methods take +ddim:K[:SPACING] | +dpm:K "
+              "diffusers:fbc[:THRESHOLD][@RHO] | diffusers:taylorseer:N:O; engine methods take +ddim:K[:SPACING] | +dpm:K "
               "(the base sampler)")
 ROBOT_KINDS = frozenset({"dense", "ddim", "dpm", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer"})
 IMAGE_KINDS = frozenset({"dense", "ddim", "dpm", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer", "toca",
@@ -172,9 +173,10 @@ def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0
         raise ValueError(f"unknown method {spec!r}; the vocabulary is {VOCABULARY}")
     if kind not in kinds:
         raise ValueError(f"method {kind!r} is not available in this suite (available: {', '.join(sorted(kinds))})")
-    if base is not None and (kinds != ROBOT_KINDS or kind in ("ddim", "dpm", "diffusers")):
-        raise ValueError(f"method {spec!r}: a base sampler (+ddim:K, +dpm:K) applies to engine methods of the robot "
-                         "suite (the image suite takes --steps / --scheduler)")
+    if base is not None and kind in ("ddim", "dpm", "diffusers"):
+        raise ValueError(f"method {spec!r}: a base sampler (+ddim:K, +dpm:K) applies to engine methods")
+    if base is not None and kinds != ROBOT_KINDS and base.spacing is not None:
+        raise ValueError(f"method {spec!r}: the image suite spaces timesteps as DiT does (leading); drop the spacing")
     method = _parse_body(spec, kind, forecast)
     return method if base is None else replace(method, sampler=base)
 

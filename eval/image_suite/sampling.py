@@ -66,6 +66,14 @@ def is_diffusers_cache(acc: Any) -> bool:
     return isinstance(acc, DiffusersCache)
 
 
+def sampler_steps(method: Method, steps: int, scheduler: str) -> tuple[int, str]:
+    """The (steps, scheduler) ``method`` samples with: a fewer-step sampler's own (``ddim:K``), an
+    engine method's base (``SPEC+ddim:K``), else the suite's ``steps`` and ``scheduler``."""
+    if method.sampler is not None:
+        return method.sampler.steps, method.sampler.scheduler
+    return steps, scheduler
+
+
 def sampler_of(model: DiT, acc: Any):
     """The module to sample: the converted copy for a diffusers cache, else ``model``."""
     return acc.model if is_diffusers_cache(acc) else model
