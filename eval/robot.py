@@ -41,8 +41,8 @@ from common.methods import ROBOT_KINDS, VOCABULARY, Method, parse_method  # noqa
 import tts  # noqa: E402
 from tts.io import checkpoint_pair  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
-from robot_suite.rollout import run_wave  # noqa: E402
-from robot_suite.tasks import TASKS, make_env  # noqa: E402
+from robot_suite.rollout import make_policy_envs, policy_cameras, run_wave  # noqa: E402
+from robot_suite.tasks import TASKS  # noqa: E402
 
 
 def main(argv=None) -> dict:
@@ -59,6 +59,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--trust-pickle", action="store_true", help="allow official .ckpt files (runs pickled code)")
+    ap.add_argument("--obs-type", choices=["auto", "low_dim", "image"], default="auto",
+                    help="the observations: image renders the policy's cameras (84x84 takes ~0.1 s per env step on "
+                         "a CPU); auto (default) follows the checkpoint, and a mismatch is an error")
     args = parse_args(ap, argv)
     try:
         method = parse_method(args.method, kinds=ROBOT_KINDS, forecast=args.forecast)
@@ -82,7 +85,11 @@ def main(argv=None) -> dict:
 
     policy = load_policy(args.checkpoint, trust_pickle=args.trust_pickle)
     acc = methods.install_policy(policy, method)
-    envs = [make_env(args.task) for _ in range(min(args.n_envs, len(seeds)))]
+    image = bool(policy_cameras(policy))
+    if args.obs_type != "auto" and args.obs_type != ("image" if image else "low_dim"):
+        ap.error(f"--obs-type {args.obs_type}: {args.checkpoint} is a {'n image' if image else ' low-dim'} policy")
+    args.obs_type = "image" if image else "low_dim"
+    envs = make_policy_envs(policy, args.task, min(args.n_envs, len(seeds)))
     todo = [s for s in seeds if s not in done]
     generator = torch.Generator().manual_seed(args.seed)
     summary = None
@@ -123,6 +130,7 @@ def report(args, label, seeds, done, latencies, summary, policy) -> dict:
     return {
         "provenance": provenance(seeds=seeds),
         "task": args.task,
+        "obs_type": args.obs_type,
         "checkpoint": str(args.checkpoint),
         "method": label,
         "episodes_requested": len(seeds),

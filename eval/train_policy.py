@@ -10,6 +10,12 @@ Resumable: training state is saved every ``--save-every`` steps under ``--run-di
 Model size (documented choice): 8 decoder layers like the paper's DP-T (24 prunable branches per
 step), width 128 instead of 256 so that a task trains in under ~30 min on 2 CPU cores and the
 bundled checkpoint stays near 4 MB in fp16.
+
+``--obs-type image`` trains the visuomotor policy (:class:`tts.adapters.dp_image_policy.DiffusionTransformerHybridImagePolicy`)
+on an image dataset (eval/render_demos.py): the cameras of ``--cameras`` through a ResNet-18 trunk of
+``--encoder-width`` (64 is torchvision's; random ``--crop`` crops in training), plus the
+proprioception keys (``robot0_eef_pos``, ``robot0_eef_quat``, ``robot0_gripper_qpos``: no object
+state, as in Diffusion Policy's image runs); encoder and transformer train together.
 """
 from __future__ import annotations
 
@@ -27,23 +33,59 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import parse_args, provenance  # noqa: E402
 from common.model_training import EMA, restore_training_state, save_training_state  # noqa: E402
 
+from tts.adapters.dp_image_policy import CAMERAS, DiffusionTransformerHybridImagePolicy, ImageEncoderConfig  # noqa: E402
 from tts.adapters.dp_policy import DiffusionTransformerLowdimPolicy, PolicyConfig, load_policy, save_policy  # noqa: E402
 from robot_suite.robomimic import read_demos, read_env_args  # noqa: E402
 from robot_suite.tasks import OBS_KEYS, TASKS, task_of_env  # noqa: E402
 
 
-def windows(demos, horizon: int, n_obs: int, n_act: int, keys=OBS_KEYS) -> tuple[torch.Tensor, torch.Tensor]:
-    """Diffusion Policy's sequence sampling: every start index, edge-padded (To-1 before, Ta-1 after)."""
-    obs_w, act_w = [], []
-    for d in demos:
-        obs = np.concatenate([d.obs[k] for k in keys], axis=-1).astype(np.float32)
-        act = d.actions.astype(np.float32)
-        T = len(act)
+PROPRIO_KEYS = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
+
+
+def window_indices(lengths: list[int], horizon: int, n_obs: int, n_act: int) -> np.ndarray:
+    """Diffusion Policy's sequence sampling over demos of ``lengths`` laid end to end: every start
+    index, edge-padded (To-1 before, Ta-1 after). Returns [windows, horizon] frame indices; the
+    first ``n_obs`` are the window's observation frames."""
+    out, offset = [], 0
+    for T in lengths:
         for start in range(-(n_obs - 1), T - horizon + n_act):
-            idx = np.clip(np.arange(start, start + horizon), 0, T - 1)
-            obs_w.append(obs[idx[:n_obs]])
-            act_w.append(act[idx])
-    return torch.from_numpy(np.stack(obs_w)), torch.from_numpy(np.stack(act_w))
+            out.append(offset + np.clip(np.arange(start, start + horizon), 0, T - 1))
+        offset += T
+    return np.stack(out)
+
+
+def windows(demos, horizon: int, n_obs: int, n_act: int, keys=OBS_KEYS) -> tuple[torch.Tensor, torch.Tensor]:
+    """Observation [N, To, D] and action [N, H, Da] windows of :func:`window_indices`."""
+    idx = window_indices([len(d) for d in demos], horizon, n_obs, n_act)
+    obs = np.concatenate([np.concatenate([d.obs[k] for k in keys], axis=-1) for d in demos]).astype(np.float32)
+    act = np.concatenate([d.actions for d in demos]).astype(np.float32)
+    return torch.from_numpy(obs[idx[:, :n_obs]]), torch.from_numpy(act[idx])
+
+
+class ImageWindows:
+    """An image dataset's windows, gathered per batch (frames are stored once, not per window):
+    ``batch(i)`` -> (obs dict of [B, To, ...] per camera and proprioception key, actions [B, H, Da])."""
+
+    def __init__(self, demos, cameras, keys, horizon: int, n_obs: int, n_act: int):
+        self.idx = window_indices([len(d) for d in demos], horizon, n_obs, n_act)
+        self.n_obs = n_obs
+        self.frames = {c: np.concatenate([d.obs[c] for d in demos]) for c in cameras}
+        self.low = {k: np.concatenate([d.obs[k] for d in demos]).astype(np.float32) for k in keys}
+        self.act = torch.from_numpy(np.concatenate([d.actions for d in demos]).astype(np.float32))
+
+    def __len__(self) -> int:
+        return len(self.idx)
+
+    def low_dim(self) -> torch.Tensor:
+        """Every frame's proprioception [frames, D] (for the normaliser)."""
+        return torch.from_numpy(np.concatenate(list(self.low.values()), axis=-1))
+
+    def batch(self, rows: torch.Tensor) -> tuple[dict, torch.Tensor]:
+        idx = self.idx[rows.numpy()]
+        obs_idx = idx[:, :self.n_obs]
+        obs = {c: torch.from_numpy(f[obs_idx]) for c, f in self.frames.items()}
+        obs.update({k: torch.from_numpy(v[obs_idx]) for k, v in self.low.items()})
+        return obs, self.act[idx]
 
 
 def init_from(policy: DiffusionTransformerLowdimPolicy, path: Path) -> None:
@@ -84,30 +126,52 @@ def main(argv=None) -> None:
                          "weights start both the model and its EMA, the optimizer and LR cycle start afresh")
     ap.add_argument("--export-only", action="store_true",
                     help="write the checkpoint from the latest saved state (EMA) without training further")
+    ap.add_argument("--obs-type", choices=["low_dim", "image"], default="low_dim",
+                    help="image: the visuomotor policy on an image dataset (eval/render_demos.py)")
+    ap.add_argument("--cameras", nargs="+", default=list(CAMERAS), help="image: the camera keys")
+    ap.add_argument("--encoder-width", type=int, default=32,
+                    help="image: channels of the ResNet-18 trunk's first stage (64 = torchvision's)")
+    ap.add_argument("--crop", type=int, default=None, help="image: crop size (default: image size - 8)")
     args = parse_args(ap, argv)
     if args.export_only:
         args.resume = True
 
     torch.manual_seed(args.seed)
     keys = TASKS[task_of_env(read_env_args(args.data)["env_name"])].obs_keys
-    demos = read_demos(args.data, keys, limit=args.max_demos)
+    image_cfg = None
+    if args.obs_type == "image":
+        keys = PROPRIO_KEYS
+        demos = read_demos(args.data, [*args.cameras, *keys], limit=args.max_demos)
+        size = int(demos[0].obs[args.cameras[0]].shape[1])
+        image_cfg = ImageEncoderConfig(cameras=args.cameras, image_size=size, crop_size=args.crop or size - 8,
+                                       width=args.encoder_width)
+    else:
+        demos = read_demos(args.data, keys, limit=args.max_demos)
     obs_dims = [int(demos[0].obs[k].shape[-1]) for k in keys]
     action_dim = int(demos[0].actions.shape[-1])
     H, To, Ta = 10, 2, 8
-    obs_w, act_w = windows(demos, H, To, Ta, keys)
+    if image_cfg is None:
+        obs_w, act_w = windows(demos, H, To, Ta, keys)
+        n_windows, low_dim = len(obs_w), obs_w
+    else:
+        data = ImageWindows(demos, args.cameras, keys, H, To, Ta)
+        n_windows, low_dim, act_w = len(data), data.low_dim(), data.act
+    cond_dim = sum(obs_dims) + (image_cfg.features if image_cfg else 0)
     cfg = PolicyConfig(
-        model=dict(input_dim=action_dim, output_dim=action_dim, horizon=H, n_obs_steps=To, cond_dim=sum(obs_dims),
+        model=dict(input_dim=action_dim, output_dim=action_dim, horizon=H, n_obs_steps=To, cond_dim=cond_dim,
                    n_layer=args.layers, n_head=args.heads, n_emb=args.width, p_drop_emb=0.0, p_drop_attn=args.dropout,
                    causal_attn=True, time_as_cond=True, obs_as_cond=True, n_cond_layers=0),
         obs_keys=list(keys), obs_dims=obs_dims, action_dim=action_dim, horizon=H, n_obs_steps=To,
         n_action_steps=Ta, num_train_timesteps=100, num_inference_steps=100, scheduler="ddpm")
-    policy = DiffusionTransformerLowdimPolicy(cfg)
-    policy.obs_normalizer.fit(obs_w)
+    policy = (DiffusionTransformerLowdimPolicy(cfg) if image_cfg is None
+              else DiffusionTransformerHybridImagePolicy(cfg, image_cfg))
+    policy.obs_normalizer.fit(low_dim)
     policy.action_normalizer.fit(act_w)
     if args.init is not None:
         init_from(policy, args.init)
     ema = EMA(policy, lambda n: min(0.9999, max(0.0, 1 - (1 + n) ** -0.75)))  # Diffusion Policy's schedule
-    opt = torch.optim.AdamW(policy.model.parameters(), lr=args.lr, betas=(0.9, 0.95), weight_decay=1e-3)
+    trained = list(policy.model.parameters()) + (list(policy.obs_encoder.parameters()) if image_cfg else [])
+    opt = torch.optim.AdamW(trained, lr=args.lr, betas=(0.9, 0.95), weight_decay=1e-3)
     warmup = max(1, min(500, args.steps // 10))
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: min(1.0, (s + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * min(s, args.steps) / args.steps)))
@@ -125,11 +189,11 @@ def main(argv=None) -> None:
         raise SystemExit(f"--export-only: no saved state at {state_path}")
     with tqdm(total=args.steps, initial=step, desc=f"train {args.out.name}", disable=args.export_only) as bar:
         while step < args.steps and not args.export_only:
-            idx = torch.randint(0, len(obs_w), (args.batch,), generator=gen)
-            loss = policy.compute_loss(obs_w[idx], act_w[idx])
+            idx = torch.randint(0, n_windows, (args.batch,), generator=gen)
+            loss = policy.compute_loss(*((obs_w[idx], act_w[idx]) if image_cfg is None else data.batch(idx)))
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(policy.model.parameters(), 1.0)
+            torch.nn.utils.clip_grad_norm_(trained, 1.0)
             opt.step()
             sched.step()
             ema.update(policy)
@@ -141,7 +205,8 @@ def main(argv=None) -> None:
             if step % args.save_every == 0 or step == args.steps:
                 save_training_state(state_path, "policy", policy, ema, opt, sched, step, losses)
     meta = provenance(seeds={"train": args.seed})
-    meta.update(init=str(args.init) if args.init else None, data=str(args.data), demos=len(demos), windows=len(obs_w), steps=args.steps, steps_done=step,
+    meta.update(init=str(args.init) if args.init else None, data=str(args.data), demos=len(demos), windows=n_windows, steps=args.steps, steps_done=step,
+                obs_type=args.obs_type,
                 batch=args.batch,
                 lr=args.lr, final_loss=float(np.mean(losses[-200:])), train_seconds_this_run=time.time() - t0,
                 note="trained on scripted-expert demonstrations (uniform, not human data)")

@@ -13,7 +13,8 @@ import pytest
 import torch
 import torch.nn as nn
 
-torch.set_num_threads(2)
+# TTS_TEST_THREADS=1 next to a background job: oversubscribed OpenMP threads spin and crawl
+torch.set_num_threads(int(os.environ.get("TTS_TEST_THREADS", "2")))
 
 
 @pytest.fixture(scope="module")

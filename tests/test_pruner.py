@@ -384,6 +384,8 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
     assert len(load_pruner(out).metadata["history"]) == 3
     with pytest.raises(ValueError, match="other precision"):  # mixed precision would change the run
         train_pruner.main(args + ["--resume", "--precision", "bfloat16"])
+    with pytest.raises(ValueError, match="other loss_space"):  # so would the scale of the L1 term
+        train_pruner.main(args + ["--resume", "--loss-space", "normalized"])
     import robot  # the eval report reads the pruner's training metadata from the same pair of files
     from common.methods import parse_method
 

@@ -128,3 +128,40 @@ def test_an_interrupted_dit_training_resumes_to_the_same_weights(tmp_path, one_t
     train_dit.main(base + ["--out", str(tmp_path / "b"), "--run-dir", str(tmp_path / "rb"), "--resume"])
     a, b = load_dit(tmp_path / "a").state_dict(), load_dit(tmp_path / "b").state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_window_indices_pad_the_edges_across_demos():
+    import train_policy
+
+    idx = train_policy.window_indices([3, 2], horizon=4, n_obs=2, n_act=2)
+    # demo 0 (frames 0-2): starts -1, 0; demo 1 (frames 3-4): start -1 only
+    assert idx.tolist() == [[0, 0, 1, 2], [0, 1, 2, 2], [3, 3, 4, 4]]
+
+
+def test_image_policy_trains_encoder_and_transformer_from_an_image_dataset(tmp_path, one_thread):
+    """--obs-type image: camera frames and proprioception (no object state) condition the policy; the
+    encoder's weights train with the transformer; the checkpoint loads as the image policy."""
+    import train_policy
+    from tts.adapters.dp_image_policy import DiffusionTransformerHybridImagePolicy
+    from tts.adapters.dp_policy import load_policy
+
+    rng = np.random.default_rng(3)
+    cams = ("agentview_image", "robot0_eye_in_hand_image")
+    demos = [Demo(obs={**{k: rng.normal(size=(n, DIMS[k])) for k in OBS_KEYS},
+                       **{c: rng.integers(0, 256, (n, 16, 16, 3), dtype=np.uint8) for c in cams}},
+                  actions=rng.uniform(-1, 1, (n, 7)), rewards=np.arange(n) == n - 1, dones=np.arange(n) == n - 1)
+             for n in (12, 14)]
+    write_demos(tmp_path / "img.hdf5", demos, {"env_name": "Lift"})
+    args = ["--data", str(tmp_path / "img.hdf5"), "--obs-type", "image", "--encoder-width", "16", "--crop", "12",
+            "--width", "16", "--layers", "1", "--heads", "2", "--batch", "4"]
+    train_policy.main(args + ["--out", str(tmp_path / "a"), "--steps", "2", "--run-dir", str(tmp_path / "ra")])
+    train_policy.main(args + ["--out", str(tmp_path / "b"), "--steps", "4", "--run-dir", str(tmp_path / "rb")])
+    a, b = load_policy(tmp_path / "a"), load_policy(tmp_path / "b")
+    assert isinstance(a, DiffusionTransformerHybridImagePolicy) and list(a.cfg.obs_keys) == list(train_policy.PROPRIO_KEYS)
+    assert a.image_cfg.crop_size == 12 and a.image_cfg.image_size == 16 and a.image_cfg.width == 16
+    ea, eb = a.obs_encoder.state_dict(), b.obs_encoder.state_dict()
+    assert any(not torch.equal(ea[k], eb[k]) for k in ea)  # the encoder trained
+    obs = {k: torch.as_tensor(demos[0].obs[k][None, :2]).float() for k in train_policy.PROPRIO_KEYS}
+    obs.update({c: demos[0].obs[c][None, :2] for c in cams})
+    out = a.predict_action(obs, torch.Generator().manual_seed(0))["action"]
+    assert out.shape == (1, 8, 7) and torch.isfinite(out).all()

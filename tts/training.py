@@ -39,7 +39,7 @@ GridSource = Union[str, Path, torch.Tensor, Sequence[str]]
 
 # options a resumed run must share with the run it continues (the rest may change, e.g. more epochs)
 _RESUME_MUST_MATCH = ("directions", "sparsity", "lam", "lr", "weight_decay", "batch", "forecast", "train_budget",
-                      "n_train", "seed", "lr_schedule", "clip_grad", "precision")
+                      "n_train", "seed", "lr_schedule", "clip_grad", "precision", "loss_space", "paired")
 PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16}
 
 

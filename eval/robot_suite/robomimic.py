@@ -22,7 +22,7 @@ from typing import Iterable, Optional, Sequence
 
 import numpy as np
 
-__all__ = ["Demo", "write_demos", "read_demos", "read_env_args"]
+__all__ = ["Demo", "write_demos", "read_demos", "read_env_args", "read_masks"]
 
 
 @dataclass
@@ -84,6 +84,16 @@ def read_env_args(path: Path) -> dict:
 
     with h5py.File(path, "r") as f:
         return json.loads(f["data"].attrs["env_args"])
+
+
+def read_masks(path: Path) -> dict[str, list[str]]:
+    """The filter keys of a dataset: name -> demo names (empty when it has none)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if "mask" not in f:
+            return {}
+        return {name: [k.decode() for k in f["mask"][name][()]] for name in f["mask"]}
 
 
 def read_demos(path: Path, obs_keys: Optional[Sequence[str]] = None, filter_key: Optional[str] = None,

@@ -9,9 +9,23 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .tasks import TASKS, low_dim_obs, reset_env
+from .tasks import TASKS, camera_obs, low_dim_obs, make_env, reset_env
 
-__all__ = ["noise_seed", "run_wave"]
+__all__ = ["noise_seed", "run_wave", "policy_cameras", "make_policy_envs"]
+
+
+def policy_cameras(policy) -> list[str]:
+    """The cameras an image policy reads (``agentview`` for its ``agentview_image`` key); [] for a
+    low-dim policy."""
+    image_cfg = getattr(policy, "image_cfg", None)
+    return [k[:-len("_image")] if k.endswith("_image") else k for k in image_cfg.cameras] if image_cfg else []
+
+
+def make_policy_envs(policy, task: str, n: int) -> list:
+    """``n`` envs of ``task`` that render what ``policy`` observes (its cameras, at its image size)."""
+    cams = policy_cameras(policy)
+    size = policy.image_cfg.image_size if cams else 84
+    return [make_env(task, cameras=cams, image_size=size) for _ in range(n)]
 
 
 def noise_seed(episode_seed: int, call: int) -> int:
@@ -33,16 +47,24 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
     """
     cfg = policy.cfg
     n = len(seeds)
+    cams = policy_cameras(policy)
+    if cams and record:
+        raise NotImplementedError("recording trajectories of an image policy (camera frames per call) is not "
+                                  "supported yet")
+    keys = [*cfg.obs_keys, *policy.image_cfg.cameras] if cams else TASKS[task].obs_keys
+
+    def observe(raw: dict) -> dict:
+        return {**low_dim_obs(raw), **camera_obs(raw, cams)} if cams else low_dim_obs(raw)
+
     policy.reset()
     raws = [reset_env(env, s) for env, s in zip(envs[:n], seeds)]
-    hist = [collections.deque([low_dim_obs(r)] * cfg.n_obs_steps, maxlen=cfg.n_obs_steps) for r in raws]
+    hist = [collections.deque([observe(r)] * cfg.n_obs_steps, maxlen=cfg.n_obs_steps) for r in raws]
     success = [False] * n
     steps = [0] * n
     coverage = [0.0] * n  # Push-T: the best goal coverage reached (Diffusion Policy's score for the task)
     traj = [{"obs": [], "action_pred": [], "action": [], "noise_seed": []} for _ in range(n)]
     latencies = []
     horizon = horizon or TASKS[task].horizon
-    keys = TASKS[task].obs_keys
     t = 0
     call = 0
     def done(e: int) -> bool:  # an env that stops acting: solved, unless the episode runs to the horizon
@@ -67,7 +89,7 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
                 if done(e):
                     continue  # finished envs keep their last observation (batch size stays constant)
                 raw, _, _, _ = envs[e].step(actions[e, a_i])
-                hist[e].append(low_dim_obs(raw))
+                hist[e].append(observe(raw))
                 steps[e] += 1
                 coverage[e] = max(coverage[e], float(getattr(envs[e], "coverage", 0.0)))
                 if envs[e]._check_success():

@@ -8,19 +8,21 @@ Push-T (gym-pusht, ``robot_suite/pusht.py``): 2-D target position, 10 Hz, horizo
 """
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
 from .pusht import PUSHT_OBS_KEYS, PushTScene
 
-__all__ = ["TASKS", "TaskConfig", "OBS_KEYS", "make_env", "reset_env", "low_dim_obs", "env_args", "task_of_env",
-           "sim_state"]
+__all__ = ["TASKS", "TaskConfig", "OBS_KEYS", "CAMERAS", "make_env", "reset_env", "low_dim_obs", "camera_obs",
+           "render_state", "env_args", "task_of_env", "sim_state"]
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
+CAMERAS = ("agentview", "robot0_eye_in_hand")  # robomimic's image datasets: obs/<camera>_image
 
 
 @dataclass(frozen=True)
@@ -50,15 +52,17 @@ def task_of_env(env_name: str) -> str:
     raise ValueError(f"no task for env {env_name!r}; known: {[c.env_name for c in TASKS.values()]}")
 
 
-def _env_kwargs(task: str, render: bool) -> dict:
+def _env_kwargs(task: str, render: bool, cameras: Sequence[str] = (), image_size: int = 84) -> dict:
     from robosuite.controllers import load_composite_controller_config
 
+    cams = dict(camera_names=list(cameras), camera_heights=image_size, camera_widths=image_size) if cameras else {}
     return dict(
         robots="Panda",
         controller_configs=load_composite_controller_config(controller="BASIC", robot="Panda"),
         has_renderer=False,
-        has_offscreen_renderer=render,
-        use_camera_obs=False,
+        has_offscreen_renderer=render or bool(cameras),
+        use_camera_obs=bool(cameras),
+        **cams,
         use_object_obs=True,
         control_freq=20,
         horizon=TASKS[task].horizon,
@@ -86,16 +90,40 @@ def import_robosuite():
     return robosuite
 
 
-def make_env(task: str, seed: Optional[int] = None, render: bool = False):
+def make_env(task: str, seed: Optional[int] = None, render: bool = False, cameras: Sequence[str] = (),
+             image_size: int = 84):
     """The env of ``task``: robosuite's (lift / can / square; ``seed`` fixes object placements) or the
-    Push-T scene (seeded per episode by :func:`reset_env`)."""
+    Push-T scene (seeded per episode by :func:`reset_env`). ``cameras`` (e.g. :data:`CAMERAS`): render
+    those cameras offscreen at ``image_size`` x ``image_size`` into every observation (robosuite
+    only; :func:`camera_obs` reads them)."""
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; choose from {sorted(TASKS)}")
     if TASKS[task].suite == "pusht":
+        if cameras:
+            raise ValueError("camera observations are rendered for the robosuite tasks, not Push-T")
         return PushTScene()
+    if (render or cameras) and importlib.util.find_spec("triton") is not None:
+        import triton  # noqa: F401  loading triton's library after an EGL context exists crashes the process
     suite = import_robosuite()
-    env = suite.make(TASKS[task].env_name, seed=seed, **_env_kwargs(task, render))
-    return env
+    return suite.make(TASKS[task].env_name, seed=seed, **_env_kwargs(task, render, cameras, image_size))
+
+
+def camera_obs(raw: dict, cameras: Sequence[str]) -> dict[str, np.ndarray]:
+    """The frames of ``cameras`` as uint8 [H, W, 3] under robomimic's keys (``agentview_image``),
+    upright: robosuite renders with OpenGL's bottom-up rows, which are flipped here, in the
+    demonstrations and at evaluation alike."""
+    missing = [c for c in cameras if f"{c}_image" not in raw]
+    if missing:
+        raise KeyError(f"the env renders no {missing} camera: make it with make_env(..., cameras=...)")
+    return {f"{c}_image": np.ascontiguousarray(raw[f"{c}_image"][::-1]) for c in cameras}
+
+
+def render_state(env, state: np.ndarray) -> dict:
+    """The raw observation of ``env`` (cameras included) at a recorded MuJoCo ``state``
+    (:func:`sim_state`): how recorded demonstrations get their camera frames."""
+    env.sim.set_state_from_flattened(np.asarray(state))
+    env.sim.forward()
+    return env._get_observations(force_update=True)
 
 
 def reset_env(env, seed: int) -> dict:
@@ -115,13 +143,13 @@ def reset_env(env, seed: int) -> dict:
     return env.reset()
 
 
-def env_args(task: str) -> dict:
-    """robomimic-style env metadata stored in datasets."""
+def env_args(task: str, cameras: Sequence[str] = (), image_size: int = 84) -> dict:
+    """robomimic-style env metadata stored in datasets (with ``cameras``: an image dataset's)."""
     if TASKS[task].suite == "pusht":
         return {"env_name": "PushT", "type": 0, "env_kwargs": {"obs_type": "state", "control_hz": 10,
                                                                 "horizon": TASKS[task].horizon},
                 "env_version": "gym-pusht"}
-    kw = _env_kwargs(task, False)
+    kw = _env_kwargs(task, False, cameras, image_size)
     kw["controller_configs"] = "BASIC (OSC_POSE arm), Panda"
     return {"env_name": TASKS[task].env_name, "type": 1, "env_kwargs": kw, "env_version": "robosuite 1.5"}
 

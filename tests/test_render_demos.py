@@ -1,0 +1,108 @@
+"""Camera frames for recorded demonstrations (eval/render_demos.py): restored states render the
+recorded scene, frames land in robomimic's image layout, and an interrupted run resumes."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+
+@pytest.fixture(scope="module")
+def lift_demos(tmp_path_factory):
+    """Two short Lift demos (the expert's first 5 steps of seeds 0 and 1) in a low-dim hdf5 with a
+    filter key; skipped where robosuite or offscreen rendering (EGL) is missing."""
+    pytest.importorskip("robosuite")
+    import collect_demos
+    from robot_suite.robomimic import Demo, write_demos
+    from robot_suite.tasks import env_args, make_env
+
+    try:
+        make_env("lift", cameras=("agentview",), image_size=16).close()
+    except Exception as e:  # no EGL / GPU-less GL: nothing to render with
+        pytest.skip(f"offscreen rendering unavailable: {e}")
+    env = make_env("lift")
+    demos = []
+    for seed in (0, 1):
+        _, d = collect_demos.run_expert(env, "lift", seed)
+        demos.append(Demo(obs={k: v[:5] for k, v in d.obs.items()}, actions=d.actions[:5], rewards=d.rewards[:5],
+                          dones=d.dones[:5], states=d.states[:5], attrs=d.attrs))
+    env.close()
+    path = tmp_path_factory.mktemp("demos") / "lift.hdf5"
+    write_demos(path, demos, env_args("lift"), masks={"train": ["demo_1"]})
+    return path
+
+
+def test_rendered_demos_keep_everything_and_match_the_recorded_scene(lift_demos, tmp_path, one_thread):
+    import render_demos
+    from robot_suite.robomimic import read_demos, read_env_args, read_masks
+
+    out = tmp_path / "lift_image.hdf5"
+    report = render_demos.main(["--data", str(lift_demos), "--out", str(out), "--size", "24", "--chunk", "1"])
+    src, dst = read_demos(lift_demos), read_demos(out)
+    assert len(dst) == 2 and read_masks(out) == {"train": ["demo_1"]}
+    for a, b in zip(src, dst):
+        for cam in ("agentview_image", "robot0_eye_in_hand_image"):
+            frames = b.obs[cam]
+            assert frames.shape == (5, 24, 24, 3) and frames.dtype == np.uint8 and frames.std() > 5
+        np.testing.assert_array_equal(a.actions, b.actions)
+        np.testing.assert_array_equal(a.obs["object"], b.obs["object"])
+        assert b.attrs["seed"] == a.attrs["seed"]
+    assert not np.array_equal(dst[0].obs["agentview_image"][0], dst[1].obs["agentview_image"][0])  # other scene
+    # MuJoCo's step leaves positions one physics substep behind the integrated state: under a millimetre
+    assert report["max_low_dim_difference"] < 2e-3 and report["frames"] == 10
+    args = read_env_args(out)["env_kwargs"]
+    assert args["use_camera_obs"] and args["camera_names"] == ["agentview", "robot0_eye_in_hand"]
+    assert args["camera_heights"] == 24 and json.loads(out.with_suffix(".json").read_text())["demos"] == 2
+    assert not (tmp_path / "lift_image.hdf5.parts").exists()
+
+
+def test_an_interrupted_render_resumes_from_its_finished_chunks(lift_demos, tmp_path, monkeypatch, one_thread):
+    import render_demos
+
+    calls = []
+    real = render_demos.render_demo
+
+    def failing(env, demo, cameras):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(demo.attrs["seed"])
+        return real(env, demo, cameras)
+
+    out = tmp_path / "image.hdf5"
+    args = ["--data", str(lift_demos), "--out", str(out), "--size", "16", "--chunk", "1", "--cameras", "agentview"]
+    monkeypatch.setattr(render_demos, "render_demo", failing)
+    with pytest.raises(KeyboardInterrupt):
+        render_demos.main(args)
+    assert not out.exists() and calls == [0]
+    calls.clear()
+    monkeypatch.setattr(render_demos, "render_demo", lambda env, demo, cams: (calls.append(demo.attrs["seed"]),
+                                                                              real(env, demo, cams))[1])
+    render_demos.main(args)
+    assert calls == [1]  # demo 0's chunk was kept
+
+
+def test_camera_frames_are_flipped_upright_and_missing_cameras_are_named():
+    from robot_suite.tasks import camera_obs
+
+    frame = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)
+    out = camera_obs({"agentview_image": frame}, ["agentview"])
+    np.testing.assert_array_equal(out["agentview_image"], frame[::-1])
+    with pytest.raises(KeyError, match="robot0_eye_in_hand"):
+        camera_obs({"agentview_image": frame}, ["agentview", "robot0_eye_in_hand"])
+
+
+def test_robot_eval_renders_the_cameras_an_image_policy_reads(lift_demos, tmp_path, one_thread):
+    """eval/robot.py on an image checkpoint: envs render its cameras at its image size, the frames
+    reach the encoder once per call, and asking for low-dim observations is an error."""
+    import robot
+    from test_image_policy import image_policy
+    from tts.adapters.dp_policy import save_policy
+
+    save_policy(image_policy(steps=4), tmp_path / "img_policy", dtype=torch.float32)
+    out = tmp_path / "run.json"
+    args = ["--task", "lift", "--checkpoint", str(tmp_path / "img_policy"), "--episodes", "2", "--n-envs", "2",
+            "--horizon", "3", "--out", str(out)]
+    res = robot.main(args)
+    assert res["obs_type"] == "image" and res["episodes_done"] == 2 and res["batch"] == 2
+    with pytest.raises(SystemExit):
+        robot.main(args + ["--obs-type", "low_dim"])
