@@ -209,6 +209,21 @@ FAMILY_STYLE = {"ddim": ("#3182bd", "DDIM-k (leading, Diffusion Policy's)"),
                 "ddim-trailing": ("#9ecae1", "DDIM-k (trailing)"), "dpm": ("#31a354", "DPM-Solver++-k")}
 
 
+def _frontier_panels(plt, batches: list[int], points_of, name: str):
+    """One panel per batch size; yields (axis, batch, points) for the measured ones and titles the
+    others "not measured"."""
+    fig, axes = plt.subplots(1, len(batches), figsize=(6.5 * len(batches), 4.6), squeeze=False)
+
+    def measured():
+        for ax, batch in zip(axes[0], batches):
+            points = points_of(batch)
+            if points:
+                yield ax, batch, points
+            else:
+                ax.set_title(f"{name}, batch {batch}: not measured")
+    return fig, measured()
+
+
 def frontier(args) -> Path:
     """One panel per batch size: the score (success with its Wilson 95% interval, or Push-T's mean
     best coverage with a normal one) against speed-up over dense, the fewer-step samplers as lines
@@ -217,13 +232,8 @@ def frontier(args) -> Path:
     folder = REPO / "results" / "robot"
     name = args.task if args.checkpoint is None or args.checkpoint.name == f"{args.task}_dpt" else \
         f"{args.task} ({args.checkpoint.name})"
-    batches = [1, 28]
-    fig, axes = plt.subplots(1, len(batches), figsize=(6.5 * len(batches), 4.6), squeeze=False)
-    for ax, batch in zip(axes[0], batches):
-        points = frontier_join.frontier_points(folder, name, batch)
-        if not points:
-            ax.set_title(f"{name}, batch {batch}: not measured")
-            continue
+    fig, panels = _frontier_panels(plt, [1, 28], lambda b: frontier_join.frontier_points(folder, name, b), name)
+    for ax, batch, points in panels:
         for fam, (color, label) in FAMILY_STYLE.items():
             line = sorted((p for p in points if p.family == fam), key=lambda p: p.speedup)
             if line:
@@ -262,12 +272,9 @@ def image_frontier(args) -> Path:
     folder = REPO / "results" / "image"
     latency = folder / "frontier_latency.json"
     batches = sorted({r["batch"] for r in json.loads(latency.read_text())["rows"]}) if latency.exists() else [1]
-    fig, axes = plt.subplots(1, len(batches), figsize=(6.5 * len(batches), 4.6), squeeze=False)
-    for ax, batch in zip(axes[0], batches):
-        points = frontier_join.image_frontier_points(folder, latency, batch)
-        if not points:
-            ax.set_title(f"digits DiT, batch {batch}: not measured")
-            continue
+    fig, panels = _frontier_panels(plt, batches, lambda b: frontier_join.image_frontier_points(folder, latency, b),
+                                   "digits DiT")
+    for ax, batch, points in panels:
         line = sorted((p for p in points if p.family in ("ddim", "dense")), key=lambda p: p.speedup)
         ax.plot([p.speedup for p in line], [p.score for p in line], "-o", color=FAMILY_STYLE["ddim"][0], ms=4,
                 label="DDIM-k (dense: k = 50)")

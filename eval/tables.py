@@ -300,6 +300,17 @@ def table7(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+def _versus_fewer_steps(p, points: list, digits: int) -> str:
+    """The last frontier column: a sparse method against the best fewer-step sampler as fast."""
+    if p.family != "sparse":
+        return "-"
+    vs = frontier.beats_fewer_steps(p, points)
+    if vs is None:
+        return "no fewer-step sampler as fast"
+    return (f"`{vs[0].method}`: {vs[1]:+.{digits}f} ({vs[2]:+.{digits}f}, {vs[3]:+.{digits}f})"
+            + (" **beats it**" if frontier.is_win(p, vs) else ""))
+
+
 def frontier_table(folder: Path) -> str:
     """Score (success, or Push-T's mean best coverage) against speed-up over dense per policy and batch
     size (eval/common/frontier.py): every method with test-seed runs and a row in
@@ -313,12 +324,7 @@ def frontier_table(folder: Path) -> str:
         for batch in sorted({r["batch"] for r in doc["rows"]}):
             points = frontier.frontier_points(folder, policy, batch)
             for p in sorted(points, key=lambda q: -q.speedup):
-                versus = "-"
-                if p.family == "sparse":
-                    vs = frontier.beats_fewer_steps(p, points)
-                    versus = "no fewer-step sampler as fast" if vs is None else (
-                        f"`{vs[0].method}`: {vs[1]:+.3f} ({vs[2]:+.3f}, {vs[3]:+.3f})"
-                        + (" **beats it**" if vs[2] > 0 else ""))
+                versus = _versus_fewer_steps(p, points, 3)
                 steps = "100" if p.method == "dense" else str(p.computed_steps)
                 rows.append(f"| {policy} | {batch} | `{p.method}` | {steps} | {p.metric} {p.score:.3f} ({p.episodes}) "
                             f"[{p.interval[0]:.3f}, {p.interval[1]:.3f}] | {p.speedup:.2f}x | {p.latency_ms:.1f} | "
@@ -338,11 +344,7 @@ def image_frontier_table(folder: Path) -> str:
     for batch in sorted({r["batch"] for r in json.loads(latency.read_text())["rows"]}):
         points = frontier.image_frontier_points(folder, latency, batch)
         for p in sorted(points, key=lambda q: -q.speedup):
-            versus = "-"
-            if p.family == "sparse":
-                vs = frontier.beats_fewer_steps(p, points)
-                versus = "no fewer-step sampler as fast" if vs is None else (
-                    f"`{vs[0].method}`: {vs[1]:+.2f} ({vs[2]:+.2f}, {vs[3]:+.2f})" + (" **beats it**" if vs[3] < 0 else ""))
+            versus = _versus_fewer_steps(p, points, 2)
             sfid = p.runs[0].get("sfid")
             rows.append(f"| {batch} | `{p.method}` | {p.computed_steps} | {p.score:.2f} [{p.interval[0]:.2f}, "
                         f"{p.interval[1]:.2f}] | {'-' if sfid is None else f'{sfid:.2f}'} | {p.speedup:.2f}x | "

@@ -25,7 +25,8 @@ from typing import Optional
 
 from .stats import mean_interval, newcombe_paired, paired_counts, paired_score_difference, policy_of, pooled, wilson
 
-__all__ = ["Point", "family", "frontier_points", "image_frontier_points", "on_frontier", "beats_fewer_steps"]
+__all__ = ["Point", "family", "frontier_points", "image_frontier_points", "on_frontier", "beats_fewer_steps",
+           "is_win"]
 
 _FEW = re.compile(r"(ddim|dpm):(\d+)(?::(\w+))?$")
 
@@ -134,6 +135,11 @@ def on_frontier(p: Point, points: list[Point]) -> bool:
     """No other point is at least as fast and scores as well, and strictly better in one of them."""
     return not any(q is not p and q.speedup >= p.speedup and q.at_least_as_good(p)
                    and (q.speedup > p.speedup or q.score != p.score) for q in points)
+
+
+def is_win(p: Point, verdict: tuple[Point, float, float, float]) -> bool:
+    """Whether :func:`beats_fewer_steps`'s ``verdict`` on ``p`` is significant in ``p``'s favour."""
+    return verdict[3] < 0 if p.lower_is_better else verdict[2] > 0
 
 
 def beats_fewer_steps(p: Point, points: list[Point]) -> Optional[tuple[Point, float, float, float]]:
