@@ -107,7 +107,7 @@ def main(argv=None) -> dict:
         order = idx if rng is None else rng.permutation(idx)
         return [order[s:s + config.batch] for s in range(0, len(order), config.batch)]
 
-    def train_epoch(opt, rng, noise_rng, epoch):
+    def train_epoch(opt, rng, noise_rng, epoch, progress):  # short epochs: resumable per epoch only
         with tts.accelerate(model, directions, plan=train_plan, forecast=config.forecast):
             return [run(train_plan, b, opt) for b in tqdm(batches(train_idx, rng), desc=f"epoch {epoch + 1}/{config.epochs}")]
 

@@ -54,7 +54,7 @@ class Interrupted(Exception):
     pass
 
 
-def _toy_run(config, interrupt_at=None, trained=None, hidden=8):
+def _toy_run(config, interrupt_at=None, trained=None, hidden=8, interrupt_at_group=None):
     """fit() on a small pruner whose epochs use the shuffle rng, the noise generator and dropout (the
     global generator), i.e. every random state an exact resume must restore."""
     torch.manual_seed(0)
@@ -62,19 +62,24 @@ def _toy_run(config, interrupt_at=None, trained=None, hidden=8):
                                  ffn=16, dropout=0.2))
     memory = torch.randn(16, 4, 2, 8, generator=torch.Generator().manual_seed(1))
 
-    def train_epoch(opt, rng, noise_rng, epoch):
+    def train_epoch(opt, rng, noise_rng, epoch, progress):
         if epoch == interrupt_at:
             raise Interrupted
-        if trained is not None:
-            trained.append(epoch)
-        rows = []
-        for idx in np.array_split(rng.permutation(16), 4):
+        rows = list(progress.rows)
+        for g, idx in enumerate(np.array_split(rng.permutation(16), 4)):
+            if g < progress.skip:
+                continue
+            if (epoch, g) == interrupt_at_group:
+                raise Interrupted
+            if trained is not None:
+                trained.append((epoch, g))
             noisy = memory[idx] + 0.1 * torch.randn(len(idx), 4, 2, 8, generator=noise_rng)
             loss = (pruner(noisy).softmax(-1)[..., 0] - 0.3).abs().mean()
             opt.zero_grad()
             loss.backward()
             opt.step()
             rows.append({"l1": float(loss.detach()), "sparsity": 0.5, "frames": len(idx)})
+            progress.done(rows)
         return rows
 
     def validate():
@@ -97,7 +102,7 @@ def test_resume_after_an_interrupted_epoch_continues_from_the_saved_state(tmp_pa
     assert len(tts.load_pruner(tmp_path / "cut").metadata["history"]) == 2
     trained = []
     _toy_run(config("cut", resume=True), trained=trained)
-    assert trained == [2]  # only the missing epoch ran
+    assert trained == [(2, g) for g in range(4)]  # only the missing epoch ran
     whole, cut = (torch.load(tmp_path / f"run_{n}" / "pruner_state.pt", weights_only=False) for n in ("whole", "cut"))
     for k, a in whole["pruner"].items():  # the same shuffles, noise and dropout as the uninterrupted run
         assert torch.equal(a, cut["pruner"][k]), k
@@ -112,6 +117,27 @@ def test_resume_after_an_interrupted_epoch_continues_from_the_saved_state(tmp_pa
         _toy_run(config("cut", resume=True), hidden=16)
     with pytest.raises(ValueError, match="other lr"):
         _toy_run(replace(config("cut", resume=True), lr=0.01))
+
+
+def test_resume_inside_an_epoch_skips_the_trained_groups_and_matches_an_uninterrupted_run(tmp_path):
+    def config(name, **kw):
+        return PrunerTrainingConfig(out=tmp_path / name, run_dir=tmp_path / f"run_{name}", directions="timestep",
+                                    sparsity=0.5, epochs=3, lr=0.05, **kw)
+
+    _toy_run(config("whole"))
+    with pytest.raises(Interrupted):  # epoch 1 done; epoch 2 interrupted after two of its four groups
+        _toy_run(config("cut"), interrupt_at_group=(1, 2))
+    state = torch.load(tmp_path / "run_cut" / "pruner_state.pt", weights_only=False)
+    assert state["epoch"] == 1 and state["partial"]["groups"] == 2
+    trained = []
+    _toy_run(config("cut", resume=True), trained=trained)
+    assert trained == [(1, 2), (1, 3)] + [(2, g) for g in range(4)]
+    whole, cut = (torch.load(tmp_path / f"run_{n}" / "pruner_state.pt", weights_only=False) for n in ("whole", "cut"))
+    for k, a in whole["pruner"].items():  # the same shuffles, noise and dropout as the uninterrupted run
+        assert torch.equal(a, cut["pruner"][k]), k
+    assert [h["val_score"] for h in whole["history"]] == [h["val_score"] for h in cut["history"]]
+    assert [h["train_l1"] for h in whole["history"]] == [h["train_l1"] for h in cut["history"]]
+    assert cut["partial"] is None
 
 
 # ---------------------------------------------------------------- config and grids

@@ -22,7 +22,6 @@ The policy is the bundled one (:mod:`tts.adapters.dp_policy`) or anything with i
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
@@ -161,12 +160,15 @@ def train_policy_pruner(policy, episodes: Sequence[dict], config: PolicyPrunerTr
     train_plan = PrunerPlan(pruner, mode="ste", sparsity=config.sparsity if config.train_budget else None,
                             autocast=config.autocast)
 
-    def train_epoch(opt, rng, noise_rng, epoch):
-        groups = episode_groups(train, config.batch, rng)
+    def train_epoch(opt, rng, noise_rng, epoch, progress):
+        groups = list(episode_groups(train, config.batch, rng))
+        rows = list(progress.rows)  # the groups an interrupted run already trained
         with accelerate(policy, directions, plan=train_plan, forecast=config.forecast):
-            return [_run_group(policy, train_plan, group, config, noise_rng, opt)
-                    for group in tqdm(groups, desc=f"epoch {epoch + 1}/{config.epochs}",
-                                      total=math.ceil(len(train) / config.batch), disable=log is None)]
+            for group in tqdm(groups[progress.skip:], desc=f"epoch {epoch + 1}/{config.epochs}",
+                              initial=progress.skip, total=len(groups), disable=log is None):
+                rows.append(_run_group(policy, train_plan, group, config, noise_rng, opt))
+                progress.done(rows)  # resumable from here
+        return rows
 
     def validate():
         plan = RecordingPlan(pruner, config.val_mode, config.sparsity)

@@ -5,8 +5,13 @@ epoch, writes the checkpoint after every epoch and keeps a resumable state. What
 training and one validation pass do depends on the backbone and is passed in as two functions
 (:mod:`tts.policy_training` does it for a Diffusion Policy, from recorded trajectories):
 
-- ``train_epoch(opt, rng, noise_rng, epoch)`` -> rows ``{"l1", "sparsity", "frames"}``;
+- ``train_epoch(opt, rng, noise_rng, epoch, progress)`` -> rows ``{"l1", "sparsity", "frames"}``;
 - ``validate()`` -> the same rows, with test-time decisions (see :class:`RecordingPlan`).
+
+``train_epoch`` also gets an :class:`EpochProgress` as a fifth argument: a trainer that calls
+``progress.done(rows)`` after each batch group makes the epoch resumable mid-way (the state is saved
+then, and a resumed run skips the first ``progress.skip`` groups, whose rows are ``progress.rows``,
+with the shuffle, noise and dropout generators where the interrupted run had them).
 
 The score of an epoch is val L1 + ``lam`` * |val sparsity - ``sparsity``|. The best epoch's weights
 are written as ``<out>.safetensors/.json`` after every epoch (with the history so far and the
@@ -16,6 +21,7 @@ exactly where it stopped.
 """
 from __future__ import annotations
 
+import copy
 import json
 import math
 import time
@@ -31,7 +37,7 @@ from .plans import COMPUTE, DIRECTIONS, check_directions, check_sparsity, from_t
 from .pruner import PrunerModule, PrunerPlan, save_pruner
 from .static_search import steps_grid
 
-__all__ = ["GridSource", "PRECISIONS", "PrunerTrainingConfig", "RecordingPlan", "fit", "mean_of", "read_grid", "training_finished"]
+__all__ = ["EpochProgress", "GridSource", "PRECISIONS", "PrunerTrainingConfig", "RecordingPlan", "fit", "mean_of", "read_grid", "training_finished"]
 
 # a decision grid [K, nb]: a schedule JSON path (eval/search_static.py), "every_n:N", a tensor of codes,
 # or one "CFTR" string per step
@@ -218,6 +224,18 @@ def _check_resume(state: dict, pruner: PrunerModule, config: PrunerTrainingConfi
         raise ValueError(f"{path} holds the training state of a different pruner: {e}") from None
 
 
+class EpochProgress:
+    """Where an epoch stands: ``skip`` groups already trained (their rows in ``rows``, from an
+    interrupted run); ``done(rows)`` after each group saves a resumable state."""
+
+    def __init__(self, skip: int = 0, rows: Optional[list] = None, save: Optional[Callable[[list], None]] = None):
+        self.skip, self.rows, self._save = skip, list(rows or []), save
+
+    def done(self, rows: list) -> None:
+        if self._save is not None:
+            self._save(rows)
+
+
 def training_finished(checkpoint_json: Union[str, Path]) -> bool:
     """Whether the pruner checkpoint whose ``.json`` is ``checkpoint_json`` holds a finished training:
     :func:`fit` writes the best epoch so far after every epoch, so an interrupted run leaves a
@@ -260,7 +278,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
     def snapshot() -> dict:
         return {k: x.clone() for k, x in pruner.state_dict().items()}
 
-    if epoch == 0 and (warm_start is not None or config.prior is not None):
+    if epoch == 0 and not history and (warm_start is not None or config.prior is not None):
         row = {"epoch": 0, **(warm_start() if warm_start is not None else {})}
         v = validate()
         row.update({f"val_{k}": mean_of(v, k) for k in ("l1", "sparsity")})
@@ -270,19 +288,44 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         best, best_state = row, snapshot()
     rng = np.random.default_rng(config.seed)
     noise_rng = torch.Generator().manual_seed(config.seed + 1000)
+    partial = st.get("partial") if st is not None else None
     if st is not None:  # continue the same shuffles, noise and dropout as an uninterrupted run
         rng.bit_generator.state = st["rng"][0]
         noise_rng.set_state(st["rng"][1])
         if "torch_rng" in st:
             torch.set_rng_state(st["torch_rng"])
+    if partial is not None:
+        say(f"resumed epoch {epoch + 1} after {partial['groups']} groups")
     base = dict(metadata or {})
     for k, v in config.to_json().items():
         base.setdefault(k, v)
     meta = None
     t_start, train_seconds = time.time(), (history[-1].get("train_seconds", 0.0) if history else 0.0)
+
+    def save_state(done_epochs: int, mid: Optional[dict]) -> None:
+        with atomic_path(state_path) as tmp:
+            torch.save({"pruner": pruner.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                        "epoch": done_epochs, "history": history, "best": best, "best_state": best_state,
+                        "rng": (rng.bit_generator.state, noise_rng.get_state()), "torch_rng": torch.get_rng_state(),
+                        "pruner_config": asdict(pruner.config), "config": config.to_json(), "partial": mid}, tmp)
+
     for epoch in range(epoch, config.epochs):
         pruner.train()
-        stats = train_epoch(opt, rng, noise_rng, epoch)
+        if partial is not None:  # the interrupted epoch: its shuffle again (the generators of noise and
+            # dropout were restored where its last saved group left them)
+            start_rng, progress_rows, skip = partial["rng_at_start"], partial["rows"], partial["groups"]
+            partial = None
+        else:
+            start_rng, progress_rows, skip = copy.deepcopy(rng.bit_generator.state), [], 0
+
+        def save_partial(rows: list, done_epochs: int = epoch, start=start_rng) -> None:
+            mid = {"groups": len(rows), "rows": list(rows), "rng_at_start": start}
+            shuffled = rng.bit_generator.state  # saved as the epoch's start: the resumed run reshuffles
+            rng.bit_generator.state = start
+            save_state(done_epochs, mid)
+            rng.bit_generator.state = shuffled
+
+        stats = train_epoch(opt, rng, noise_rng, epoch, EpochProgress(skip, progress_rows, save_partial))
         lr = opt.param_groups[0]["lr"]
         sched.step()
         v = validate()
@@ -296,11 +339,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         say(" ".join(f"{k}={x:.4g}" for k, x in row.items()))
         if best is None or row["val_score"] < best["val_score"]:
             best, best_state = row, snapshot()
-        with atomic_path(state_path) as tmp:
-            torch.save({"pruner": pruner.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                        "epoch": epoch + 1, "history": history, "best": best, "best_state": best_state,
-                        "rng": (rng.bit_generator.state, noise_rng.get_state()), "torch_rng": torch.get_rng_state(),
-                        "pruner_config": asdict(pruner.config), "config": config.to_json()}, tmp)
+        save_state(epoch + 1, None)
         # the best epoch's weights, with the history so far: a usable checkpoint after every epoch
         meta = dict(base, best_epoch=best, history=history, train_seconds=train_seconds,
                     pruner_macs_per_call=pruner.macs(steps, memory_tokens))
