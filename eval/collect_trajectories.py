@@ -21,10 +21,10 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance, parse_args  # noqa: E402
-from robot_suite.rollout import run_wave  # noqa: E402
+from robot_suite.rollout import make_policy_envs, run_wave  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
-from robot_suite.tasks import TASKS, make_env  # noqa: E402
+from robot_suite.tasks import TASKS  # noqa: E402
 from tts.trajectories import load_trajectories, save_trajectories  # noqa: E402
 
 
@@ -37,6 +37,7 @@ def main(argv=None) -> None:
     ap.add_argument("--n-envs", type=int, default=16)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--horizon", type=int, default=None, help="env steps per episode (default: the task's; for smoke tests)")
     ap.add_argument("--full-horizon", action="store_true",
                     help="run every episode to the task's horizon and record the frames after success too "
                          "(the reference's pruner training data)")
@@ -50,12 +51,13 @@ def main(argv=None) -> None:
     policy = load_policy(args.checkpoint)
     meta = provenance(seeds=seeds)
     meta.update(task=args.task, checkpoint=str(args.checkpoint), policy_config=policy.cfg.__dict__)
-    envs = [make_env(args.task) for _ in range(min(args.n_envs, len(seeds)))]
+    envs = make_policy_envs(policy, args.task, min(args.n_envs, len(seeds)))  # cameras for an image policy
     todo = [s for s in seeds if s not in done]
     with tqdm(total=len(seeds), initial=len(done), desc=f"trajectories {args.task}") as bar:
         for w in range(0, len(todo), len(envs)):
             wave = todo[w:w + len(envs)]
-            outcomes, _ = run_wave(policy, envs, wave, args.task, None, record=True, full_horizon=args.full_horizon)
+            outcomes, _ = run_wave(policy, envs, wave, args.task, None, record=True, horizon=args.horizon,
+                                   full_horizon=args.full_horizon)
             for o in outcomes:
                 episodes.append({"seed": o["seed"], "success": o["success"], **o["trajectory"]})
             save_trajectories(args.out, episodes, meta)

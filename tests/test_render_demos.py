@@ -106,3 +106,30 @@ def test_robot_eval_renders_the_cameras_an_image_policy_reads(lift_demos, tmp_pa
     assert res["obs_type"] == "image" and res["episodes_done"] == 2 and res["batch"] == 2
     with pytest.raises(SystemExit):
         robot.main(args + ["--obs-type", "low_dim"])
+
+
+def test_trajectories_of_an_image_policy_carry_its_camera_windows_and_replay(lift_demos, tmp_path, one_thread):
+    """eval/collect_trajectories.py records an image policy's camera windows next to its low-dim
+    window; a replay and the timing tools feed them back; low-dim-only data is a clear error."""
+    import collect_trajectories
+    from common.policy_timing import batch_frames
+    from robot_suite.replay import replay
+    from test_image_policy import image_policy
+    from tts.adapters.dp_policy import load_policy, save_policy
+    from tts.trajectories import load_trajectories, obs_dict
+
+    save_policy(image_policy(steps=4), tmp_path / "img_policy", dtype=torch.float32)
+    out = tmp_path / "traj.pt"
+    collect_trajectories.main(["--task", "lift", "--checkpoint", str(tmp_path / "img_policy"), "--episodes", "2",
+                               "--n-envs", "2", "--horizon", "10", "--out", str(out), "--full-horizon"])
+    episodes, _ = load_trajectories(out, successful_only=False)
+    ep = episodes[0]
+    assert ep["agentview_image"].shape == (len(ep["obs"]), 2, 32, 32, 3) and ep["agentview_image"].dtype == np.uint8
+    policy = load_policy(tmp_path / "img_policy")
+    calls = []
+    replay(policy, episodes, lambda frame: calls.append(frame.index))
+    assert calls == list(range(len(ep["obs"])))
+    frames = batch_frames(policy, episodes, 1)
+    assert frames[0]["robot0_eye_in_hand_image"].shape == (2, 2, 32, 32, 3)
+    with pytest.raises(KeyError, match="no 'agentview_image' frames"):
+        obs_dict(policy, torch.as_tensor(ep["obs"][:1]))

@@ -31,7 +31,7 @@ from tqdm import tqdm
 
 from .plans import check_directions
 from .pruner import PrunerConfig, PrunerModule, PrunerPlan, build_pruner, distill_schedule, pruner_loss
-from .trajectories import REPLAY_KEYS, episode_groups, lockstep_frames, obs_dict, split_episodes
+from .trajectories import episode_groups, lockstep_frames, obs_dict, replay_keys, split_episodes
 from .training import GridSource, PrunerTrainingConfig, RecordingPlan, fit, read_grid
 
 __all__ = ["PolicyPrunerTrainingConfig", "build_policy_pruner", "train_policy_pruner"]
@@ -108,8 +108,8 @@ def _run_group(policy, plan: PrunerPlan, group, config: PolicyPrunerTrainingConf
     policy.reset()
     normalized = config.loss_space == "normalized"  # every action dim on the same [-1, 1] scale
     sums = {"l1": 0.0, "sparsity": 0.0, "n": 0.0}
-    for frame in lockstep_frames(group, REPLAY_KEYS):
-        obs = obs_dict(policy, frame.data["obs"])
+    for frame in lockstep_frames(group, replay_keys(policy)):
+        obs = obs_dict(policy, frame.data["obs"], frame.data)
         gen = _generators(frame, config.paired, rng)
         target = frame.data["action_pred"].float()
         if normalized:

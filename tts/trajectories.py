@@ -2,7 +2,9 @@
 
 An *episode* is a dict of per-call arrays with a common leading length R (``obs`` [R, To, obs_dim]:
 the observation window fed to ``predict_action``; ``action_pred`` [R, H, Da]: the dense action, the
-training target; ``noise_seed`` [R]: the seed of that call's noise; plus ``seed`` and ``success``).
+training target; ``noise_seed`` [R]: the seed of that call's noise; for an image policy, its camera
+windows under their observation keys, e.g. ``agentview_image`` [R, To, H, W, 3] uint8; plus ``seed``
+and ``success``).
 :func:`save_trajectories` / :func:`load_trajectories` read and write a file of them.
 
 :func:`episode_groups` shuffles episodes into groups of ``batch`` and :func:`lockstep_frames` walks a
@@ -14,15 +16,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Any, Iterator, Mapping, Optional, Sequence
 
 import numpy as np
 import torch
 
 from .io import atomic_path
 
-__all__ = ["Frame", "REPLAY_KEYS", "TRAJECTORY_FORMAT", "episode_groups", "held_out_episodes", "load_trajectories",
-           "lockstep_frames", "obs_dict", "save_trajectories", "split_episodes"]
+__all__ = ["Frame", "REPLAY_KEYS", "TRAJECTORY_FORMAT", "camera_keys", "episode_groups", "held_out_episodes",
+           "load_trajectories", "lockstep_frames", "obs_dict", "replay_keys", "save_trajectories", "split_episodes"]
 
 TRAJECTORY_FORMAT = "tts-trajectories-v1"
 REPLAY_KEYS = ("obs", "action_pred", "noise_seed")  # the per-call arrays a replay or the trainer needs
@@ -62,13 +64,30 @@ def held_out_episodes(path: Path, first: int, successful_only: bool = True) -> t
     return episodes[first:], len(episodes)
 
 
-def obs_dict(policy, window: torch.Tensor) -> dict[str, np.ndarray]:
+def camera_keys(policy) -> tuple[str, ...]:
+    """The camera observation keys of an image policy (``image_cfg.cameras``); () for a low-dim one."""
+    image_cfg = getattr(policy, "image_cfg", None)
+    return tuple(image_cfg.cameras) if image_cfg is not None else ()
+
+
+def replay_keys(policy) -> tuple[str, ...]:
+    """The per-call arrays a replay of ``policy`` needs: :data:`REPLAY_KEYS` and its camera windows."""
+    return REPLAY_KEYS + camera_keys(policy)
+
+
+def obs_dict(policy, window: torch.Tensor, frames: Optional[Mapping[str, Any]] = None) -> dict[str, np.ndarray]:
     """Split a stored obs window [E, To, obs_dim] back into the policy's observation keys
-    (``policy.cfg.obs_keys`` / ``obs_dims``, in that order)."""
+    (``policy.cfg.obs_keys`` / ``obs_dims``, in that order); an image policy's camera windows
+    [E, To, H, W, 3] come from ``frames`` (e.g. a :class:`Frame`'s data)."""
     out, i = {}, 0
     for k, d in zip(policy.cfg.obs_keys, policy.cfg.obs_dims):
         out[k] = window[..., i:i + d].numpy()
         i += d
+    for k in camera_keys(policy):
+        if frames is None or k not in frames:
+            raise KeyError(f"the recorded observations have no {k!r} frames, which this image policy reads: "
+                           "record its trajectories with eval/collect_trajectories.py")
+        out[k] = np.asarray(frames[k])
     return out
 
 

@@ -6,7 +6,7 @@ import time
 import numpy as np
 import torch
 
-from tts.trajectories import obs_dict
+from tts.trajectories import camera_keys, obs_dict
 
 __all__ = ["time_calls", "batch_frames", "computed_steps"]
 
@@ -35,8 +35,10 @@ def batch_frames(policy, episodes: list[dict], n_frames: int) -> list[dict]:
     """Frames 0..n_frames of a batch of episodes (an episode shorter than that repeats its last frame)."""
     frames = []
     for r in range(n_frames + 1):
-        window = torch.as_tensor(np.stack([e["obs"][min(r, len(e["obs"]) - 1)] for e in episodes]))
-        frames.append(obs_dict(policy, window))
+        at = [min(r, len(e["obs"]) - 1) for e in episodes]
+        window = torch.as_tensor(np.stack([e["obs"][i] for e, i in zip(episodes, at)]))
+        cams = {k: np.stack([e[k][i] for e, i in zip(episodes, at)]) for k in camera_keys(policy)}
+        frames.append(obs_dict(policy, window, cams))
     return frames
 
 

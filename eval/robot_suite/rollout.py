@@ -41,6 +41,7 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
     so a sample's noise does not depend on the batch) and each outcome carries its trajectory: the
     obs window fed to the policy [R, To, obs_dim], the dense ``action_pred`` [R, H, Da], the
     executed chunk [R, Ta, Da] and the noise seeds [R] (R = calls until success or the horizon).
+    An image policy's camera windows [R, To, H, W, 3] are recorded under their observation keys.
     ``full_horizon=True``: every episode runs to the horizon, also after success (the policy keeps
     acting; ``success`` says whether the task was ever solved), and its frames after success are
     recorded too, as the reference's pruner training data includes them.
@@ -48,10 +49,8 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
     cfg = policy.cfg
     n = len(seeds)
     cams = policy_cameras(policy)
-    if cams and record:
-        raise NotImplementedError("recording trajectories of an image policy (camera frames per call) is not "
-                                  "supported yet")
-    keys = [*cfg.obs_keys, *policy.image_cfg.cameras] if cams else TASKS[task].obs_keys
+    cam_keys = list(policy.image_cfg.cameras) if cams else []
+    keys = [*cfg.obs_keys, *cam_keys] if cams else TASKS[task].obs_keys
 
     def observe(raw: dict) -> dict:
         return {**low_dim_obs(raw), **camera_obs(raw, cams)} if cams else low_dim_obs(raw)
@@ -62,7 +61,8 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
     success = [False] * n
     steps = [0] * n
     coverage = [0.0] * n  # Push-T: the best goal coverage reached (Diffusion Policy's score for the task)
-    traj = [{"obs": [], "action_pred": [], "action": [], "noise_seed": []} for _ in range(n)]
+    traj = [{"obs": [], "action_pred": [], "action": [], "noise_seed": [], **{k: [] for k in cam_keys}}
+            for _ in range(n)]
     latencies = []
     horizon = horizon or TASKS[task].horizon
     t = 0
@@ -82,7 +82,8 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
             for e in range(n):
                 if not done(e):
                     for key, val in (("obs", window[e]), ("action_pred", out["action_pred"][e].cpu().numpy()),
-                                     ("action", actions[e]), ("noise_seed", noise_seed(seeds[e], call))):
+                                     ("action", actions[e]), ("noise_seed", noise_seed(seeds[e], call)),
+                                     *((k, obs[k][e]) for k in cam_keys)):
                         traj[e][key].append(val)
         for a_i in range(actions.shape[1]):
             for e in range(n):
