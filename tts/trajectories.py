@@ -85,8 +85,8 @@ def obs_dict(policy, window: torch.Tensor, frames: Optional[Mapping[str, Any]] =
         i += d
     for k in camera_keys(policy):
         if frames is None or k not in frames:
-            raise KeyError(f"the recorded observations have no {k!r} frames, which this image policy reads: "
-                           "record its trajectories with eval/collect_trajectories.py")
+            raise KeyError(f"the observations given have no {k!r} frames, which this image policy reads (its "
+                           "recorded trajectories carry them; tools that read low-dim windows only cannot run it)")
         out[k] = np.asarray(frames[k])
     return out
 
