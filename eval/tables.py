@@ -300,6 +300,25 @@ def table7(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+def pruner_training_table(folder: Path) -> str:
+    """The training curves of the reference-recipe pruners (checkpoints/pruners/*_reference_*.json,
+    written after every epoch, so a training in progress shows the epochs it has done)."""
+    rows = ["| pruner | epochs done | best epoch: val L1, val sparsity | val sparsity per epoch | "
+            "val L1 per epoch | train sparsity per epoch |", "|---|---|---|---|---|---|"]
+    for path in sorted(folder.glob("*_reference_*.json")):
+        meta = json.loads(path.read_text())["metadata"]
+        hist, best = meta["history"], meta["best_epoch"]
+
+        def series(key: str, digits: int) -> str:
+            return " ".join(f"{h[key]:.{digits}f}" if key in h else "-" for h in hist)
+        rows.append(f"| `{path.stem}` | {hist[-1]['epoch']} of {meta['epochs']} | {best['epoch']}: "
+                    f"{best['val_l1']:.4f}, {best['val_sparsity']:.3f} | {series('val_sparsity', 2)} | "
+                    f"{series('val_l1', 3)} | {series('train_sparsity', 2)} |")
+    if len(rows) == 2:
+        return "No reference-recipe pruner has finished an epoch yet (recipes/table7.sh PARTS=pruners).\n"
+    return "\n".join(rows) + "\n"
+
+
 def _versus_fewer_steps(p, points: list, digits: int) -> str:
     """The last frontier column: a sparse method against the best fewer-step sampler as fast."""
     if p.family != "sparse":
@@ -555,7 +574,8 @@ def main() -> None:
                              "runs": robot_table(robot)})
     fill(docs / "testbed.md", {"steps": steps_table(robot), "table7": table7(robot), "operators": operators_table(REPO / "results" / "experts"),
                                 "push-operators": push_operators_table(REPO / "results" / "experts"),
-                                "coverage": coverage_table(robot)})
+                                "coverage": coverage_table(robot),
+                                "pruner-training": pruner_training_table(REPO / "checkpoints" / "pruners")})
     readme = {"headline-robot": headline_robot(robot)}
     if any(image.glob("digits_*.json")):
         sample_grids(image)

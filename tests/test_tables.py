@@ -165,3 +165,16 @@ def test_image_headline_shows_ddim_with_the_same_compute_and_macs_against_dense_
         {"batch": 16, "dense_ms": 100.0, "methods": {"ddim:10": {"speedup": 4.9}}}]}))
     table = tables.headline_image(tmp_path)
     assert "| `ddim:10` | 55.00 | 5.00x | 4.90x |" in table and table.index("`dense`") < table.index("`ddim:10`")
+
+
+def test_pruner_training_table_shows_the_curve_of_a_training_in_progress(tmp_path):
+    import tables
+
+    assert tables.pruner_training_table(tmp_path).startswith("No reference-recipe pruner")
+    hist = [{"epoch": 0, "val_l1": 0.11, "val_sparsity": 0.93},
+            {"epoch": 1, "train_l1": 0.2, "train_sparsity": 0.5, "val_l1": 0.09, "val_sparsity": 0.61}]
+    (tmp_path / "pusht_reference_prior_0.93.json").write_text(json.dumps(
+        {"metadata": {"history": hist, "best_epoch": hist[1], "epochs": 20}}))
+    (tmp_path / "lift_tts_0.93.json").write_text("{}")  # not a reference-recipe pruner: not read
+    table = tables.pruner_training_table(tmp_path)
+    assert "| `pusht_reference_prior_0.93` | 1 of 20 | 1: 0.0900, 0.610 | 0.93 0.61 | 0.110 0.090 | - 0.50 |" in table
