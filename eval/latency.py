@@ -30,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, add_all_episodes_option, parse_args, provenance, write_json  # noqa: E402
+from common import REPO, add_all_episodes_option, parse_args, policy_slug, provenance, write_json  # noqa: E402
 from common import methods  # noqa: E402
 from common.methods import ROBOT_KINDS, VOCABULARY, parse_method  # noqa: E402
 from common.policy_timing import batch_frames, computed_steps, time_calls  # noqa: E402
@@ -66,7 +66,8 @@ def main(argv=None) -> dict:
     suffix = "" if args.parallel == "auto" else f"_parallel-{args.parallel}"
     if args.reference != "dense":
         suffix += "_vs_" + ("ddim-matched" if matched else reference.slug)
-    out_path = args.out or REPO / "results" / "robot" / f"latency_{args.task}_{method.slug}{suffix}.json"
+    name = f"latency_{policy_slug(args.task, args.checkpoint)}_{method.slug}{suffix}.json"
+    out_path = args.out or REPO / "results" / "robot" / name
     if args.resume and out_path.exists():
         print(f"[skip] {out_path} exists")
         return json.loads(out_path.read_text())

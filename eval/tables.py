@@ -227,7 +227,7 @@ def latency_table(folder: Path) -> str:
             m = row["macs_per_call"]
             brk = ", ".join(f"{k} {v:.1f}" for k, v in row["timing_median_ms"].items())
             rows.append(
-                f"| {r['task']} | `{r['method']}` | {r.get('parallel', 'auto')} | {row['batch']} | {row['dense_ms']['median']:.1f} | "
+                f"| {policy_of(r)} | `{r['method']}` | {r.get('parallel', 'auto')} | {row['batch']} | {row['dense_ms']['median']:.1f} | "
                 f"{row['accelerated_ms']['median']:.1f} | **{row['speedup']:.2f}x** | {row['sparsity']:.3f} | "
                 f"{m['dense'] / max(m['realised_with_pruner'], 1):.2f} | {m['pruner'] / m['dense']:.4f} | {brk} | "
                 f"`{r['provenance']['git_sha'][:10]}` |")
@@ -245,7 +245,7 @@ def reuse_cost_table(folder: Path) -> str:
         for row in r["rows"]:
             brk = ", ".join(f"{k} {v:.1f}" for k, v in row["timing_median_ms"].items())
             ref = ", ".join(f"{k} {v:.1f}" for k, v in row["reference_timing_median_ms"].items())
-            rows.append(f"| {r['task']} | `{r['method']}` | {row['batch']} | {row['reference']}: "
+            rows.append(f"| {policy_of(r)} | `{r['method']}` | {row['batch']} | {row['reference']}: "
                         f"{row['reference_ms']['median']:.1f} | {row['accelerated_ms']['median']:.1f} | "
                         f"**{row['ratio']:.2f}x** | {brk} | {ref} | `{r['provenance']['git_sha'][:10]}` |")
     return "\n".join(rows) + "\n"
