@@ -35,7 +35,7 @@ from common import REPO, add_all_episodes_option, parse_args, provenance, write_
 import tts  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 from tts.static_search import steps_grid  # noqa: E402
-from tts.trajectories import held_out_episodes, obs_dict  # noqa: E402
+from tts.trajectories import Windows, held_out_episodes  # noqa: E402
 
 
 def neighbours(compute_steps: Sequence[int], steps: int, shifts: Sequence[int]) -> list[list[int]]:
@@ -103,10 +103,10 @@ def main(argv=None) -> dict:
     first = args.first_episode if args.first_episode is not None else (89 if args.task == "can" else 96)
     every = args.all_episodes or sched.get("calibration_on") == "every recorded episode"  # as the search did
     held_out, n_episodes = held_out_episodes(args.trajectories, first, successful_only=not every)
-    windows = np.concatenate([e["obs"] for e in held_out])
+    policy = load_policy(args.checkpoint)
+    windows = Windows(policy, held_out)
     seeds = np.concatenate([e["noise_seed"] for e in held_out])
     pick = np.linspace(0, len(windows) - 1, min(args.calls, len(windows))).round().astype(int)
-    policy = load_policy(args.checkpoint)
     steps, branches = policy.cfg.num_inference_steps, 3 * policy.model.config.n_layer
 
     def sample(offset: int) -> torch.Tensor:  # offset 0: the recorded noise; else another draw per call
@@ -114,7 +114,7 @@ def main(argv=None) -> dict:
         for s in range(0, len(pick), args.batch):
             idx = pick[s:s + args.batch]
             gen = [torch.Generator().manual_seed(int(x) + offset) for x in seeds[idx]]
-            obs = obs_dict(policy, torch.as_tensor(windows[idx]))
+            obs = windows.obs(idx)
             outs.append(policy.predict_action(obs, generator=gen)["action_pred"])
         return torch.cat(outs)
 

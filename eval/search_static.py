@@ -34,7 +34,7 @@ from common.methods import ROBOT_KINDS, parse_method  # noqa: E402
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 import tts  # noqa: E402
 from tts.static_search import reuse_errors, search_compute_steps, search_schedule, steps_grid  # noqa: E402
-from tts.trajectories import load_trajectories, obs_dict  # noqa: E402
+from tts.trajectories import Windows, load_trajectories  # noqa: E402
 
 
 def policy_calibration(args):
@@ -43,10 +43,10 @@ def policy_calibration(args):
     if not episodes:
         raise SystemExit(f"{args.trajectories} holds no successful episode; --all-episodes calibrates on the "
                          "states of every recorded episode (the target is the dense policy's own output either way)")
-    windows = np.concatenate([e["obs"] for e in episodes[:args.episodes]])
+    policy = load_policy(args.checkpoint)
+    windows = Windows(policy, episodes[:args.episodes])
     rng = np.random.default_rng(args.seed)
     pick = rng.choice(len(windows), size=min(args.calls, len(windows)), replace=False)
-    policy = load_policy(args.checkpoint)
     if args.sampler:  # search over the steps of a shorter base sampler (ddim:K[:SPACING], dpm:K)
         base = parse_method(args.sampler, kinds=ROBOT_KINDS).sampler
         if base is None:
@@ -54,7 +54,7 @@ def policy_calibration(args):
         policy.set_sampler(base.scheduler, base.steps, base.spacing)
 
     def sample():
-        return torch.cat([policy.predict_action(obs_dict(policy, torch.as_tensor(windows[pick[s:s + args.batch]])),
+        return torch.cat([policy.predict_action(windows.obs(pick[s:s + args.batch]),
                                                 generator=torch.Generator().manual_seed(args.seed + s))["action_pred"]
                           for s in range(0, len(pick), args.batch)])
 

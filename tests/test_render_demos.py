@@ -110,7 +110,8 @@ def test_robot_eval_renders_the_cameras_an_image_policy_reads(lift_demos, tmp_pa
 
 def test_trajectories_of_an_image_policy_carry_its_camera_windows_and_replay(lift_demos, tmp_path, one_thread):
     """eval/collect_trajectories.py records an image policy's camera windows next to its low-dim
-    window; a replay and the timing tools feed them back; low-dim-only data is a clear error."""
+    window; a replay, the timing tools and the schedule search feed them back; low-dim-only data is a
+    clear error."""
     import collect_trajectories
     from common.policy_timing import batch_frames
     from robot_suite.replay import replay
@@ -131,5 +132,11 @@ def test_trajectories_of_an_image_policy_carry_its_camera_windows_and_replay(lif
     assert calls == list(range(len(ep["obs"])))
     frames = batch_frames(policy, episodes, 1)
     assert frames[0]["robot0_eye_in_hand_image"].shape == (2, 2, 32, 32, 3)
+    import search_static  # the schedule search picks calls out of order, frames included
+
+    sched = search_static.main(["--checkpoint", str(tmp_path / "img_policy"), "--trajectories",
+                                str(out), "--sparsity", "0.5", "--objective", "output", "--calls", "3", "--batch", "3",
+                                "--sweeps", "1", "--all-episodes", "--out", str(tmp_path / "steps.json")])
+    assert len(json.loads((tmp_path / "steps.json").read_text())["compute_steps"]) == 2 and 0.5 in sched
     with pytest.raises(KeyError, match="no 'agentview_image' frames"):
         obs_dict(policy, torch.as_tensor(ep["obs"][:1]))

@@ -23,7 +23,7 @@ import torch
 
 from .io import atomic_path
 
-__all__ = ["Frame", "REPLAY_KEYS", "TRAJECTORY_FORMAT", "camera_keys", "episode_groups", "held_out_episodes",
+__all__ = ["Frame", "REPLAY_KEYS", "TRAJECTORY_FORMAT", "Windows", "camera_keys", "episode_groups", "held_out_episodes",
            "load_trajectories", "lockstep_frames", "obs_dict", "replay_keys", "save_trajectories", "split_episodes"]
 
 TRAJECTORY_FORMAT = "tts-trajectories-v1"
@@ -89,6 +89,24 @@ def obs_dict(policy, window: torch.Tensor, frames: Optional[Mapping[str, Any]] =
                            "recorded trajectories carry them; tools that read low-dim windows only cannot run it)")
         out[k] = np.asarray(frames[k])
     return out
+
+
+class Windows:
+    """Every call of ``episodes`` as one array per recorded key, for tools that pick calls out of
+    order (schedule search, headroom): ``obs(idx)`` -> the policy's observation dict for those calls
+    (camera windows included for an image policy)."""
+
+    def __init__(self, policy, episodes: Sequence[dict]):
+        self.policy = policy
+        self.windows = np.concatenate([e["obs"] for e in episodes])
+        self.frames = {k: np.concatenate([e[k] for e in episodes]) for k in camera_keys(policy)
+                       if all(k in e for e in episodes)}
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def obs(self, idx: np.ndarray) -> dict[str, np.ndarray]:
+        return obs_dict(self.policy, torch.as_tensor(self.windows[idx]), {k: v[idx] for k, v in self.frames.items()})
 
 
 # -------------------------------------------------------------------- lockstep batches
