@@ -87,7 +87,7 @@ def main(argv=None) -> dict:
     acc = methods.install_policy(policy, method)
     image = bool(policy_cameras(policy))
     if args.obs_type != "auto" and args.obs_type != ("image" if image else "low_dim"):
-        ap.error(f"--obs-type {args.obs_type}: {args.checkpoint} is a {'n image' if image else ' low-dim'} policy")
+        ap.error(f"--obs-type {args.obs_type}: {args.checkpoint} is {'an image' if image else 'a low-dim'} policy")
     args.obs_type = "image" if image else "low_dim"
     envs = make_policy_envs(policy, args.task, min(args.n_envs, len(seeds)))
     todo = [s for s in seeds if s not in done]

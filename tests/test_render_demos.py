@@ -104,7 +104,7 @@ def test_robot_eval_renders_the_cameras_an_image_policy_reads(lift_demos, tmp_pa
             "--horizon", "3", "--out", str(out)]
     res = robot.main(args)
     assert res["obs_type"] == "image" and res["episodes_done"] == 2 and res["batch"] == 2
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit):  # argparse's error: "... is an image policy"
         robot.main(args + ["--obs-type", "low_dim"])
 
 

@@ -9,6 +9,8 @@ from typing import Optional
 import numpy as np
 import torch
 
+from tts.trajectories import camera_keys
+
 from .tasks import TASKS, camera_obs, low_dim_obs, make_env, reset_env
 
 __all__ = ["noise_seed", "run_wave", "policy_cameras", "make_policy_envs"]
@@ -17,8 +19,7 @@ __all__ = ["noise_seed", "run_wave", "policy_cameras", "make_policy_envs"]
 def policy_cameras(policy) -> list[str]:
     """The cameras an image policy reads (``agentview`` for its ``agentview_image`` key); [] for a
     low-dim policy."""
-    image_cfg = getattr(policy, "image_cfg", None)
-    return [k[:-len("_image")] if k.endswith("_image") else k for k in image_cfg.cameras] if image_cfg else []
+    return [k.removesuffix("_image") for k in camera_keys(policy)]
 
 
 def make_policy_envs(policy, task: str, n: int) -> list:
@@ -48,8 +49,7 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
     """
     cfg = policy.cfg
     n = len(seeds)
-    cams = policy_cameras(policy)
-    cam_keys = list(policy.image_cfg.cameras) if cams else []
+    cams, cam_keys = policy_cameras(policy), list(camera_keys(policy))
     keys = [*cfg.obs_keys, *cam_keys] if cams else TASKS[task].obs_keys
 
     def observe(raw: dict) -> dict:
