@@ -68,6 +68,9 @@ def test_frontier_join_dominance_and_the_fewer_steps_verdict(tmp_path):
     best, diff, lo, _ = frontier.beats_fewer_steps(pts["uniform:0.8:timestep"], list(pts.values()))
     assert best.method == "ddim:5" and diff < 0 and lo < 0
     assert frontier.frontier_points(tmp_path, "lift", 28) == []
+    # a sampler 3% slower than a sparse method is within the timing noise: it is its rival
+    slower = frontier.Point("ddim:6", 0.99, n, (0.9, 1.0), 9.0 * 0.97, 1.0, 6, pts["ddim:5"].runs)
+    assert frontier.beats_fewer_steps(pts["uniform:0.8:timestep"], [*pts.values(), slower])[0] is slower
     assert [frontier.family(m) for m in ("dense", "ddim:3", "ddim:3:trailing", "dpm:2", "file:x+ddim:20")] == \
         ["dense", "ddim", "ddim-trailing", "dpm", "sparse"]
 
