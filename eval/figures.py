@@ -209,6 +209,13 @@ FAMILY_STYLE = {"ddim": ("#3182bd", "DDIM-k (leading, Diffusion Policy's)"),
                 "ddim-trailing": ("#9ecae1", "DDIM-k (trailing)"), "dpm": ("#31a354", "DPM-Solver++-k")}
 
 
+def _point_label(method: str, prefix: str) -> str:
+    """A sparse method's label without what every point of the figure shares (``file:`` and the
+    policy's schedule-name prefix), cut to 34 characters."""
+    text = method.replace("file:", "").replace("pruner:", "pruner ").replace(f"{prefix}_", "")
+    return text if len(text) < 34 else text[:32] + ".."
+
+
 def _frontier_panels(plt, batches: list[int], points_of, name: str):
     """One panel per batch size; yields (axis, batch, points) for the measured ones and titles the
     others "not measured"."""
@@ -247,13 +254,14 @@ def frontier(args) -> Path:
             marker, color = ("s", "black") if p.family == "dense" else ("D", "#e6550d")
             ax.errorbar([p.speedup], [p.score], yerr=[[p.score - p.interval[0]], [p.interval[1] - p.score]],
                         fmt=marker, color=color, ms=5, capsize=2)
-            ax.annotate(p.method if len(p.method) < 34 else p.method[:32] + "..", (p.speedup, p.score), fontsize=6,
-                        xytext=(4, -9), textcoords="offset points")
+            ax.annotate(_point_label(p.method, policy_slug(args.task, args.checkpoint)), (p.speedup, p.score),
+                        fontsize=6, xytext=(4, -9), textcoords="offset points")
         ax.set_xscale("log")
         ax.set_xlabel("policy-call speed-up over dense DDPM-100 (same process)")
         ax.set_ylabel("success rate (test episodes)" if points[0].metric == "success"
                       else "mean best goal coverage (test episodes)")
-        ax.set_ylim(-0.02, 1.05)
+        if points[0].metric == "success":
+            ax.set_ylim(-0.02, 1.05)
         ax.set_title(f"{name}, batch {batch}")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower left")
@@ -287,7 +295,7 @@ def image_frontier(args) -> Path:
             shorter = "+ddim:" in p.method or "+dpm:" in p.method
             ax.errorbar([p.speedup], [p.score], yerr=[[p.score - p.interval[0]], [p.interval[1] - p.score]],
                         fmt="D", color="#e6550d", mfc="white" if shorter else "#e6550d", ms=5, capsize=2)
-            ax.annotate(p.method if len(p.method) < 34 else p.method[:32] + "..", (p.speedup, p.score), fontsize=6,
+            ax.annotate(_point_label(p.method, "digits"), (p.speedup, p.score), fontsize=6,
                         xytext=(4, -9), textcoords="offset points")
         ax.set_xscale("log")
         ax.set_yscale("log")
