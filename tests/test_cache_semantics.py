@@ -191,6 +191,31 @@ def test_rollout_cache_persists_and_resets():
     assert acc.summary().calls[-1].dense
 
 
+def test_fused_rollout_step_sum_is_kept_per_step_until_its_row_changes():
+    """A whole step reused along the rollout direction adds the row's sum over branches; the sum is
+    computed once per (step, row version) and recomputed after a write to that row."""
+    from tts.cache import ReuseCache
+
+    cache = ReuseCache([0, 1, 0, 1], 2, ("rollout",))
+    rows = [[torch.randn(2, 3) for _ in range(4)] for _ in range(2)]
+    for k in range(2):
+        for b in range(4):
+            cache.write(b, k, rows[k][b])
+    codes = [ROLLOUT] * 4
+    first = cache.step_total(codes, 1)
+    torch.testing.assert_close(first, sum(rows[1]))
+    assert cache.step_total(codes, 1) is first  # kept: the row did not change
+    cache.write(2, 1, torch.zeros(2, 3))
+    again = cache.step_total(codes, 1)
+    torch.testing.assert_close(again, rows[1][0] + rows[1][1] + rows[1][3])
+    cache.write_rows(0, 1, torch.tensor([1]), torch.ones(1, 3), 0)
+    torch.testing.assert_close(cache.step_total(codes, 1)[1], torch.ones(3) + rows[1][1][1] + rows[1][3][1])
+    torch.testing.assert_close(cache.step_total(codes, 0), sum(rows[0]))
+    cache.new_episode()
+    with pytest.raises(RuntimeError, match="empty cache"):
+        cache.step_total(codes, 0)
+
+
 def test_enabling_rollout_changes_only_the_first_call_when_the_plan_never_picks_it():
     """The robot table's omni row vs its timestep-only row: with decisions that never choose rollout,
     turning the rollout direction on only makes each episode's first call dense; every later call is

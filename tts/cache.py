@@ -128,6 +128,9 @@ class ReuseCache:
         self.rollout: list[list[Optional[torch.Tensor]]] = []
         self.version = 0  # bumped by every write and clear: keys the memo of step_total
         self._sums: Optional[tuple[int, TaylorSlot]] = None  # (version, slots summed over branches)
+        # per step k: (version of rollout row k, the row summed over branches), for fused rollout steps
+        self._rollout_versions: list[int] = []
+        self._rollout_sums: dict[int, tuple[int, torch.Tensor]] = {}
 
     # -- lifecycle -------------------------------------------------------------------------------
     def begin_call(self) -> None:
@@ -139,6 +142,7 @@ class ReuseCache:
     def new_episode(self) -> None:
         """Rollout caches live for one episode."""
         self.rollout = []
+        self._rollout_versions, self._rollout_sums = [], {}
         self.version += 1
 
     def rollout_ready(self, k: int) -> bool:
@@ -162,6 +166,8 @@ class ReuseCache:
             summed = self._timestep_sum()
             if summed is not None:
                 return summed.forecast(k)
+        if all(c == ROLLOUT for c in codes) and self.rollout_ready(k):
+            return self._rollout_sum(k)
         total = None
         for b, code in enumerate(codes):
             d = self.read(code, b, k)
@@ -189,10 +195,21 @@ class ReuseCache:
         self._sums = (self.version, summed)
         return summed
 
+    def _rollout_sum(self, k: int) -> torch.Tensor:
+        """Rollout row ``k`` summed over branches, kept until the row changes: a static plan reuses
+        the same row in every call of an episode."""
+        version = self._rollout_versions[k]
+        memo = self._rollout_sums.get(k)
+        if memo is None or memo[0] != version:
+            memo = self._rollout_sums[k] = (version, torch.stack(self.rollout[k]).sum(0))
+        return memo[1]
+
     # -- writes (compute only) -------------------------------------------------------------------
     def _rollout_row(self, k: int) -> list[Optional[torch.Tensor]]:
         while len(self.rollout) <= k:
             self.rollout.append([None] * self.num_branches)
+            self._rollout_versions.append(0)
+        self._rollout_versions[k] += 1  # the caller writes into the row
         return self.rollout[k]
 
     def write(self, b: int, k: int, d: torch.Tensor) -> None:
