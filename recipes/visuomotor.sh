@@ -18,7 +18,7 @@ CKPT=checkpoints/${TASK}_image_dpt
 [ -f "$data" ] || python eval/collect_demos.py --task "$TASK" --episodes 100 --seed 0 --out "$data"
 [ -f "$images" ] || python eval/render_demos.py --data "$data" --out "$images" --size 84 --threads "${THREADS:-2}"
 [ -f "$CKPT.json" ] || python eval/train_policy.py --data "$images" --obs-type image \
-    --encoder-width "${ENCODER_WIDTH:-16}" --steps "${STEPS:-6000}" --batch 64 --out "$CKPT" --resume \
+    --encoder-width "${ENCODER_WIDTH:-16}" --steps "${STEPS:-6000}" --batch 64 --save-every 100 --out "$CKPT" --resume \
     --threads "${THREADS:-2}"
 evaluate --method dense --n-envs 10
 TRAJ=data/trajectories/$(basename "$CKPT").pt
