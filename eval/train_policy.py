@@ -129,7 +129,7 @@ def main(argv=None) -> None:
     ap.add_argument("--obs-type", choices=["low_dim", "image"], default="low_dim",
                     help="image: the visuomotor policy on an image dataset (eval/render_demos.py)")
     ap.add_argument("--cameras", nargs="+", default=list(CAMERAS), help="image: the camera keys")
-    ap.add_argument("--encoder-width", type=int, default=32,
+    ap.add_argument("--encoder-width", type=int, default=16,
                     help="image: channels of the ResNet-18 trunk's first stage (64 = torchvision's)")
     ap.add_argument("--crop", type=int, default=None, help="image: crop size (default: image size - 8)")
     args = parse_args(ap, argv)
