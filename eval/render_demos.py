@@ -72,8 +72,8 @@ def main(argv=None) -> dict:
     if TASKS[task].suite != "robosuite":
         ap.error(f"{args.data} is a {task} dataset: camera frames are rendered for the robosuite tasks")
     demos = read_demos(args.data, limit=args.limit)
-    names = [f"demo_{i}" for i in range(len(demos))]
-    masks = {k: [n for n in v if n in set(names)] for k, v in read_masks(args.data).items()}
+    kept = {f"demo_{i}" for i in range(len(demos))}  # filter keys keep only the demos rendered (--limit)
+    masks = {k: [n for n in v if n in kept] for k, v in read_masks(args.data).items()}
     parts = args.out.with_name(args.out.name + ".parts")
     parts.mkdir(parents=True, exist_ok=True)
     key = {"data": str(args.data), "data_bytes": args.data.stat().st_size, "cameras": args.cameras,
