@@ -49,11 +49,11 @@ if [[ $parts == *statics* ]]; then
       --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
       --methods uniform:0.93:rollout rotating:0.93:rollout "file:$early" $(all_episodes)
 fi
-# shellcheck disable=SC2046
 # The reference's sparsity weight (lam 1) balances an L1 on actions in [-1, 1] (robosuite's). Push-T's
 # actions are pixel targets (0-512), whose L1 is hundreds of times larger and would drown the sparsity
 # term, so its pruners take the L1 on the policy's normalised actions, which are in [-1, 1].
 loss_space=$([ "$TASK" = pusht ] && echo normalized || echo raw)
+# shellcheck disable=SC2046
 reference_pruner() {  # NAME DIRECTIONS [ARGS...]: the reference recipe on 96 train / 16 validation episodes
   local name=$1 dirs=$2; shift 2
   trained "$name" || python eval/train_pruner.py --recipe reference --trajectories "$TRAJ" \
