@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, add_all_episodes_option, parse_args, policy_slug, provenance, write_json  # noqa: E402
 from common import methods  # noqa: E402
 from common.methods import ROBOT_KINDS, VOCABULARY, parse_method  # noqa: E402
-from common.policy_timing import batch_frames, computed_steps, time_calls  # noqa: E402
+from common.policy_timing import batch_frames, computed_steps, time_calls, timed_image_encoder  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 from tts.trajectories import load_trajectories  # noqa: E402
@@ -93,10 +93,11 @@ def main(argv=None) -> dict:
         if ref_acc is not None:
             ref_acc.calls.clear()
         t_dense, t_fast = [], []
-        for trial in tqdm(range(args.trials), desc=f"latency batch {B}"):
-            order = (dense, fast) if trial % 2 == 0 else (fast, dense)
-            for pol in order:
-                (t_dense if pol is dense else t_fast).extend(time_calls(pol, frames, 1000 * trial))
+        with timed_image_encoder(dense) as t_encoder:
+            for trial in tqdm(range(args.trials), desc=f"latency batch {B}"):
+                order = (dense, fast) if trial % 2 == 0 else (fast, dense)
+                for pol in order:
+                    (t_dense if pol is dense else t_fast).extend(time_calls(pol, frames, 1000 * trial))
         s = acc.summary()
         sparse_calls = [c for c in s.calls if not c.dense]
         last = sparse_calls[-1]
@@ -123,6 +124,10 @@ def main(argv=None) -> dict:
                               "realised_with_pruner": macs_real + last.pruner_macs},
             "timing_median_ms": {k: v * 1e3 for k, v in s.timing(sparse_calls).items()},
         })
+        if t_encoder:  # an image policy: the encoder's share of each call
+            enc_ms = float(np.median(t_encoder)) * 1e3
+            rows[-1]["image_encoder_ms"] = {("dense" if ref_acc is None else "reference"): enc_ms,
+                                            "accelerated": rows[-1]["timing_median_ms"].get("image_encoder", float("nan"))}
         r = rows[-1]
         ref_name = "dense" if ref_acc is None else f"{dense.cfg.scheduler}-{dense.cfg.num_inference_steps}"
         print(f"batch {B}: {ref_name} {md * 1e3:.1f} ms, {label} {mf * 1e3:.1f} ms -> {r['speedup']:.2f}x; "

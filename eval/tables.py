@@ -371,6 +371,50 @@ def image_frontier_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+def visuomotor_table(folder: Path) -> str:
+    """Image-observation policies: success per method on the test seeds (paired against dense) and,
+    where eval/latency.py timed the method, its call latency against dense with the image encoder's
+    share and the fraction reached of the ideal speed-up (reused branches free, encoder and computed
+    branches as in the dense call)."""
+    runs: dict[tuple[str, str], list[dict]] = {}
+    for path in sorted(folder.glob("*.json")):
+        r = json.loads(path.read_text())
+        if r.get("obs_type") == "image" and r.get("episodes_done") == r.get("episodes_requested"):
+            runs.setdefault((policy_of(r), r["method"]), []).append(r)
+    timed: dict[tuple[str, str], dict] = {}
+    policies = {p for p, _ in runs}
+    for path in sorted(folder.glob("latency_*.json")):
+        r = json.loads(path.read_text())
+        if r.get("reference", "dense") == "dense" and policy_of(r) in policies:
+            timed[(policy_of(r), r["method"])] = r
+    rows = ["| policy | method | success (episodes) | vs dense: difference (95% CI) on the same episodes | batch "
+            "| dense ms | method ms | speed-up | image encoder ms: dense / method (share of the call) "
+            "| ideal speed-up, reached | breakdown ms (median) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for key in sorted(set(runs) | set(timed), key=lambda k: (k[0], k[1] != "dense", k[1])):
+        policy, method = key
+        rs = runs.get(key, [])
+        score = "-" if not rs else "{:.2f} ({})".format(*pooled(rs))
+        versus = "-" if not rs or method == "dense" else paired_vs_dense(rs, runs.get((policy, "dense"), []))
+        latency_rows = timed[key]["rows"] if key in timed else [None]
+        for row in latency_rows:
+            if row is None:
+                rows.append(f"| {policy} | `{method}` | {score} | {versus} | - | - | - | - | - | - | - |")
+                continue
+            dense_ms, ms = row["dense_ms"]["median"], row["accelerated_ms"]["median"]
+            enc = row.get("image_encoder_ms", {})
+            enc_d, enc_m = enc.get("dense", float("nan")), enc.get("accelerated", float("nan"))
+            m = row["macs_per_call"]
+            computed = m["realised_with_pruner"] / m["dense"] if row["sparsity"] > 0 else float("nan")
+            ideal = dense_ms / (enc_d + computed * (dense_ms - enc_d))
+            ideal_txt = "-" if math.isnan(ideal) else f"{ideal:.2f}x, {row['speedup'] / ideal:.0%}"
+            brk = ", ".join(f"{k} {v:.1f}" for k, v in row["timing_median_ms"].items())
+            rows.append(f"| {policy} | `{method}` | {score} | {versus} | {row['batch']} | {dense_ms:.1f} | {ms:.1f} | "
+                        f"**{row['speedup']:.2f}x** | {enc_d:.1f} / {enc_m:.1f} ({enc_d / dense_ms:.0%} / {enc_m / ms:.0%}) "
+                        f"| {ideal_txt} | {brk} |")
+    return "\n".join(rows) + "\n"
+
+
 def agreement_table(folder: Path) -> str:
     """How often a pruner's decisions equal its prior (eval/pruner_agreement.py: agreement_*.json)."""
     rows = ["| task | pruner | prior | exact budget | episodes not trained on | calls identical to the prior | "
@@ -576,6 +620,7 @@ def main() -> None:
                                 "push-operators": push_operators_table(REPO / "results" / "experts"),
                                 "coverage": coverage_table(robot),
                                 "pruner-training": pruner_training_table(REPO / "checkpoints" / "pruners")})
+    fill(docs / "visuomotor.md", {"visuomotor": visuomotor_table(robot)})
     readme = {"headline-robot": headline_robot(robot)}
     if any(image.glob("digits_*.json")):
         sample_grids(image)

@@ -21,6 +21,8 @@ bundled=$([ "$CKPT" = "checkpoints/${TASK}_dpt" ] && echo 1 || echo "")
 policy=$TASK
 [ -n "$bundled" ] || policy=${TASK}-$(basename "$CKPT")
 sched=results/schedules/${policy}  # schedules and pruners belong to one policy
+[ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 112 \
+    --out "$TRAJ" --resume --threads "${THREADS:-2}"  # the schedule search calibrates on them
 have() {  # a file: method runs only where its schedule was made
   local m=${1#file:}
   [[ $1 != file:* ]] || [ -f "${m%%+*}" ]

@@ -4,28 +4,40 @@
 # image layout (eval/render_demos.py: agentview and wrist cameras, 84x84; about 0.1 s per frame on 2
 # CPU cores), the image DP-T trained on them (eval/train_policy.py --obs-type image: ResNet-18 trunk of
 # width ENCODER_WIDTH, default 16, random 76x76 crops, the proprioception keys; STEPS default 6000 at
-# batch 64, resumable), its dense success on the test seeds (rendering every env step), 16 recorded
-# trajectories with their camera windows, and the call latency at batch 1 and 28 with its breakdown
-# (image encoder, condition, steps; run on a quiet machine) for dense against 93% uniform timestep
-# reuse and against DDIM-7. Every stage is skipped when its output exists. Hours on 2 CPU cores; then
-# python eval/tables.py
+# batch 64, resumable), 16 recorded trajectories with their camera windows (the schedule search's
+# calibration calls and the latency tools' observations), the searched 93% steps, and then two stages
+# (PARTS, default success,latency):
+# - success: dense, the searched 93% steps, uniform 93% timestep reuse and DDIM-7 / DDIM-3 on the test
+#   seeds, rendering every env step (about 40 min per method on 2 CPU cores);
+# - latency: each of those against dense at batch 1 and 28, with the breakdown (image encoder,
+#   condition, pruner, steps); run it on a quiet machine.
+# Every stage is skipped when its output exists. Hours on 2 CPU cores. Then python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
 TASK=${TASK:-lift}
 data=data/${TASK}_expert.hdf5
 images=data/${TASK}_expert_image.hdf5
 CKPT=checkpoints/${TASK}_image_dpt
+TRAJ=data/trajectories/$(basename "$CKPT").pt
+steps=results/schedules/${TASK}-$(basename "$CKPT")_steps_0.93.json
 [ -f "$data" ] || python eval/collect_demos.py --task "$TASK" --episodes 100 --seed 0 --out "$data"
 [ -f "$images" ] || python eval/render_demos.py --data "$data" --out "$images" --size 84 --threads "${THREADS:-2}"
 [ -f "$CKPT.json" ] || python eval/train_policy.py --data "$images" --obs-type image \
     --encoder-width "${ENCODER_WIDTH:-16}" --steps "${STEPS:-6000}" --batch 64 --save-every 100 --out "$CKPT" --resume \
     --threads "${THREADS:-2}"
-evaluate --method dense --n-envs 10
-TRAJ=data/trajectories/$(basename "$CKPT").pt
+parts=${PARTS:-success,latency}
+[[ $parts != *success* ]] || evaluate --method dense --n-envs 10
 [ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 16 \
     --out "$TRAJ" --resume --threads "${THREADS:-2}"
-for m in uniform:0.93:timestep ddim:7; do
-  python eval/latency.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" --method "$m" \
-      --first-episode 0 --batch 1 28 --resume --threads "${THREADS:-2}"
-done
+search_steps "$steps" 0.93
+methods=("file:$steps" ddim:7 uniform:0.93:timestep ddim:3)
+if [[ $parts == *success* ]]; then
+  for m in "${methods[@]}"; do evaluate --method "$m" --n-envs 10; done
+fi
+if [[ $parts == *latency* ]]; then
+  for m in "${methods[@]}"; do
+    python eval/latency.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" --method "$m" \
+        --first-episode 0 --batch 1 28 --resume --threads "${THREADS:-2}"
+  done
+fi
 python eval/tables.py

@@ -73,6 +73,31 @@ def test_image_encoder_runs_once_per_call_and_is_timed():
     assert timing["image_encoder"] > 0 and timing["total"] >= timing["image_encoder"]
 
 
+def test_encoder_share_timer_times_each_call_and_puts_the_encoder_back():
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "eval"))
+    from common.policy_timing import timed_image_encoder
+
+    pol = image_policy()
+    with tts.accelerate(pol, ("timestep",), plan=tts.plans.uniform(0.5, "timestep")) as acc:
+        engine_forward = pol.obs_encoder.__dict__["forward"]  # the engine's own timer
+        with timed_image_encoder(pol) as times:
+            for c in range(3):
+                pol.predict_action(image_obs(2, c), torch.Generator().manual_seed(c))
+        assert len(times) == 3 and min(times) > 0
+        assert pol.obs_encoder.__dict__["forward"] is engine_forward
+        assert acc.summary().calls[-1].timing["image_encoder"] > 0  # still timed under the wrapper
+    assert "forward" not in pol.obs_encoder.__dict__
+    with timed_image_encoder(pol) as times:
+        pol.predict_action(image_obs(2), torch.Generator().manual_seed(0))
+    assert len(times) == 1 and "forward" not in pol.obs_encoder.__dict__
+    low_dim = load_policy  # any object without an obs_encoder records nothing
+    with timed_image_encoder(low_dim) as times:
+        pass
+    assert times == []
+
+
 def test_all_compute_plan_is_bit_identical_and_checkpoints_round_trip(tmp_path):
     pol = image_policy()
     obs = image_obs(2, 3)

@@ -178,3 +178,30 @@ def test_pruner_training_table_shows_the_curve_of_a_training_in_progress(tmp_pat
     (tmp_path / "lift_tts_0.93.json").write_text("{}")  # not a reference-recipe pruner: not read
     table = tables.pruner_training_table(tmp_path)
     assert "| `pusht_reference_prior_0.93` | 1 of 20 | 1: 0.0900, 0.610 | 0.93 0.61 | 0.110 0.090 | - 0.50 |" in table
+
+
+def test_visuomotor_table_joins_success_with_latency_and_the_encoder_share(tmp_path):
+    import tables
+
+    def write(method, successes, obs_type="image"):
+        eps = [{"seed": 100000 + i, "success": bool(x)} for i, x in enumerate(successes)]
+        doc = {"task": "lift", "checkpoint": "checkpoints/lift_image_dpt", "method": method, "obs_type": obs_type,
+               "episodes_requested": len(eps), "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
+               "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps}
+        (tmp_path / f"{obs_type}_{method.replace(':', '-')}.json").write_text(json.dumps(doc))
+
+    write("dense", [1, 1, 1, 0])
+    write("uniform:0.93:timestep", [1, 0, 1, 0])
+    write("ddim:7", [1, 1], obs_type="low_dim")  # another policy's row: not on the page
+    row = {"batch": 1, "dense_ms": {"median": 100.0}, "accelerated_ms": {"median": 40.0}, "speedup": 2.5,
+           "sparsity": 0.93, "macs_per_call": {"dense": 100.0, "realised_with_pruner": 10.0},
+           "timing_median_ms": {"image_encoder": 19.0, "total": 40.0}, "image_encoder_ms": {"dense": 20.0, "accelerated": 19.0}}
+    (tmp_path / "latency_lift-lift_image_dpt_uniform.json").write_text(json.dumps(
+        {"task": "lift", "checkpoint": "checkpoints/lift_image_dpt", "method": "uniform:0.93:timestep", "rows": [row]}))
+    _, _, *rows = tables.visuomotor_table(tmp_path).strip().splitlines()
+    assert len(rows) == 2 and rows[0].startswith("| lift (lift_image_dpt) | `dense` | 0.75 (4) | - | - |")
+    cells = rows[1].split(" | ")
+    assert cells[2] == "0.50 (4)" and cells[3].startswith("-0.250 (")
+    assert cells[5:8] == ["100.0", "40.0", "**2.50x**"]
+    assert cells[8] == "20.0 / 19.0 (20% / 48%)"
+    assert cells[9] == "3.57x, 70%"  # 100 / (20 + 0.1 * 80)

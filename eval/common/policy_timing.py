@@ -2,13 +2,15 @@
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
+from typing import Iterator
 
 import numpy as np
 import torch
 
 from tts.trajectories import camera_keys, obs_dict
 
-__all__ = ["time_calls", "batch_frames", "computed_steps"]
+__all__ = ["time_calls", "batch_frames", "computed_steps", "timed_image_encoder"]
 
 
 def _sync(policy) -> None:
@@ -48,3 +50,33 @@ def computed_steps(summary) -> int:
     call = [c for c in summary.calls if not c.dense][-1]
     d = call.decisions()  # [K, B, nb]
     return int(round(float((d == 0).any(-1).float().sum(0).mean())))
+
+
+@contextmanager
+def timed_image_encoder(policy) -> Iterator[list[float]]:
+    """Seconds of every call of the policy's image encoder (``obs_encoder``) inside the block, for the
+    encoder's share of an untouched policy's call; an empty list for a policy without one."""
+    times: list[float] = []
+    encoder = getattr(policy, "obs_encoder", None)
+    if not isinstance(encoder, torch.nn.Module):
+        yield times
+        return
+    own = encoder.__dict__.get("forward")  # an instance-level forward (another timer) is put back
+    inner = encoder.forward
+
+    def forward(*args, **kwargs):
+        _sync(policy)
+        t0 = time.perf_counter()
+        out = inner(*args, **kwargs)
+        _sync(policy)
+        times.append(time.perf_counter() - t0)
+        return out
+
+    encoder.forward = forward
+    try:
+        yield times
+    finally:
+        if own is None:
+            del encoder.forward
+        else:
+            encoder.forward = own
