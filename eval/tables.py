@@ -554,8 +554,10 @@ def headline_robot(folder: Path) -> str:
         if r.get("parallel", "auto") == "auto" and r.get("reference", "dense") == "dense":
             speed[(r["task"], r["method"])] = {row["batch"]: row["speedup"] for row in r["rows"]}
     rows = ["| task | method | success (test episodes) | vs dense, paired (95% CI) | speed-up batch 1 / 28 "
-            "| MACs dense DDPM-100 / method |", "|---|---|---|---|---|---|"]
+            "| MACs dense DDPM-100 / method | minus the best fewer-step sampler as fast, batch 1 (paired 95% CI) |",
+            "|---|---|---|---|---|---|---|"]
     for task, methods in HEADLINE_ROBOT.items():
+        points = {p.method: p for p in frontier.frontier_points(folder, task, 1)}
         for method in methods:
             rs = runs.get((task, method))
             if not rs:
@@ -568,7 +570,8 @@ def headline_robot(folder: Path) -> str:
             realised = lc.get("macs_realised_with_pruner", lc.get("macs_realised"))
             ref = runs[(task, "dense")][0]["tts"]["last_call"]["macs_dense"] if (task, "dense") in runs else None
             macs = f"{ref / realised:.1f}x" if realised and ref else "-"
-            rows.append(f"| {task} | `{method}` | {success:.2f} ({n}) | {paired} | {sp_text} | {macs} |")
+            versus = _versus_fewer_steps(points[method], list(points.values()), 3) if method in points else "-"
+            rows.append(f"| {task} | `{method}` | {success:.2f} ({n}) | {paired} | {sp_text} | {macs} | {versus} |")
     return "\n".join(rows) + "\n"
 
 
