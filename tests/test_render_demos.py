@@ -91,6 +91,23 @@ def test_camera_frames_are_flipped_upright_and_missing_cameras_are_named():
         camera_obs({"agentview_image": frame}, ["agentview", "robot0_eye_in_hand"])
 
 
+def test_a_camera_env_reset_collects_the_render_context_it_dropped(monkeypatch):
+    from robot_suite import tasks
+
+    collected = []
+    monkeypatch.setattr(tasks.gc, "collect", lambda: collected.append(1) or 0)
+
+    class Env:
+        def __init__(self, cameras: bool):
+            self.use_camera_obs = cameras
+
+        def reset(self):
+            return {"seed": int(self.rng.integers(1 << 30))}
+
+    assert tasks.reset_env(Env(False), 3) == tasks.reset_env(Env(True), 3)  # same episode either way
+    assert collected == [1]  # only the camera env's reset collects
+
+
 def test_robot_eval_renders_the_cameras_an_image_policy_reads(lift_demos, tmp_path, one_thread):
     """eval/robot.py on an image checkpoint: envs render its cameras at its image size, the frames
     reach the encoder once per call, and asking for low-dim observations is an error."""
