@@ -108,6 +108,27 @@ def test_a_camera_env_reset_collects_the_render_context_it_dropped(monkeypatch):
     assert collected == [1]  # only the camera env's reset collects
 
 
+def test_camera_envs_in_one_process_render_their_own_scene_across_hard_resets(lift_demos):
+    """Two camera envs stepped in turn, each hard reset (which drops and frees a render context),
+    render what a lone env renders: each binds its own GL context, and freeing a dropped context
+    no longer deletes the live one's buffers (which gave wrong frames)."""
+    from robot_suite.tasks import camera_obs, make_env, reset_env
+
+    cams = ("agentview", "robot0_eye_in_hand")
+    a, b = (make_env("lift", cameras=cams, image_size=32) for _ in range(2))
+    for seed in (0, 1):
+        frames = []
+        for env in (a, b):
+            reset_env(env, seed)
+        for env in (a, b):
+            frames.append(camera_obs(env.step(np.zeros(7))[0], cams))
+        for k in frames[0]:
+            assert frames[0][k].std() > 5  # a scene, not a blank buffer
+            np.testing.assert_array_equal(frames[0][k], frames[1][k])
+    a.close()
+    b.close()
+
+
 def test_robot_eval_renders_the_cameras_an_image_policy_reads(lift_demos, tmp_path, one_thread):
     """eval/robot.py on an image checkpoint: envs render its cameras at its image size, the frames
     reach the encoder once per call, and asking for low-dim observations is an error."""

@@ -106,7 +106,37 @@ def make_env(task: str, seed: Optional[int] = None, render: bool = False, camera
     if (render or cameras) and importlib.util.find_spec("triton") is not None:
         import triton  # noqa: F401  loading triton's library after an EGL context exists crashes the process
     suite = import_robosuite()
+    if cameras:
+        _render_in_own_context()
     return suite.make(TASKS[task].env_name, seed=seed, **_env_kwargs(task, render, cameras, image_size))
+
+
+def _render_in_own_context() -> None:
+    """Make robosuite's offscreen renderer bind its own GL context before it renders, reads pixels or
+    frees its GL objects. It makes its context current only when created, so with several camera
+    envs in one process every env rendered in the newest context, and a dropped context (a hard reset
+    drops the old sim's) freed its GL objects by id in whichever context was current: the live
+    env's textures and buffers. Frames then came out wrong, silently. Patched once per process."""
+    from robosuite.utils import binding_utils
+
+    cls = binding_utils.MjRenderContext
+    for name in ("render", "read_pixels", "__del__"):
+        method = getattr(cls, name)
+        if getattr(method, "binds_own_context", False):
+            continue
+
+        def bound(self, *args, _method=method, _freeing=name == "__del__", **kwargs):
+            ctx = getattr(self, "gl_ctx", None)
+            try:
+                if ctx is not None:
+                    ctx.make_current()
+            except Exception:
+                if not _freeing:  # a render outside its own context is what this patch prevents
+                    raise  # at interpreter exit EGL is gone and there is nothing left to free
+            return _method(self, *args, **kwargs)
+
+        bound.binds_own_context = True
+        setattr(cls, name, bound)
 
 
 def camera_obs(raw: dict, cameras: Sequence[str]) -> dict[str, np.ndarray]:
@@ -145,6 +175,7 @@ def reset_env(env, seed: int) -> dict:
     if getattr(env, "use_camera_obs", False):
         # a hard reset drops the old sim and its offscreen render context in reference cycles: about
         # 0.3 GB per reset with two 84x84 cameras, which ran an evaluation out of memory after 20 episodes
+        # (freeing a context unbinds the current one: _render_in_own_context rebinds before each render)
         gc.collect()
     return obs
 
