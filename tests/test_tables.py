@@ -205,3 +205,29 @@ def test_visuomotor_table_joins_success_with_latency_and_the_encoder_share(tmp_p
     assert cells[5:8] == ["100.0", "40.0", "**2.50x**"]
     assert cells[8] == "20.0 / 19.0 (20% / 48%)"
     assert cells[9] == "3.57x, 70%"  # 100 / (20 + 0.1 * 80)
+
+
+def test_robot_headline_takes_frontier_speed_ups_and_shows_the_sampler_each_sparse_row_is_held_against(tmp_path):
+    import tables
+
+    def write(method, successes):
+        eps = [{"seed": 100000 + i, "success": bool(x)} for i, x in enumerate(successes)]
+        doc = {"task": "lift", "checkpoint": "checkpoints/lift_dpt", "method": method, "episodes_requested": len(eps),
+               "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
+               "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps,
+               "tts": {"last_call": {"macs_dense": 100.0, "macs_realised": 10.0}}}
+        (tmp_path / f"lift_{method.replace(':', '-')}.json").write_text(json.dumps(doc))
+
+    for m in ("dense", "ddim:7", "ddim:3:trailing", "ddim:2"):
+        write(m, [1] * 20)
+    write("file:lift_steps_0.93", [1] * 19 + [0])
+    rows = [{"method": m, "batch": b, "latency_ms": 100 / s, "dense_ms": 100.0, "speedup": s, "computed_steps": k}
+            for b in (1, 28) for m, s, k in (("ddim:7", 14.0, 7), ("ddim:3:trailing", 30.0, 3), ("ddim:2", 45.0, 2),
+                                             ("file:lift_steps_0.93", 10.0 + b / 28, 7))]
+    (tmp_path / "frontier_latency_lift.json").write_text(json.dumps(
+        {"task": "lift", "checkpoint": "checkpoints/lift_dpt", "policy": "lift", "rows": rows}))
+    lines = tables.headline_robot(tmp_path).strip().splitlines()[2:]
+    assert [line.split(" | ")[1] for line in lines] == ["`dense`", "`ddim:7`", "`ddim:2`", "`file:lift_steps_0.93`"]
+    steps = lines[3].split(" | ")
+    assert steps[4] == "10.04x / 11.00x"  # the frontier's batch-1 and batch-28 speed-ups
+    assert steps[6].startswith("`ddim:2`: -0.050 (")  # the most successful sampler at least as fast
