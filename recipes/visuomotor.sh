@@ -9,10 +9,10 @@
 # resumable), 16 recorded trajectories with their camera windows (the schedule search's
 # calibration calls and the latency tools' observations), the searched 93% steps, and then two stages
 # (PARTS, default success,latency):
-# - success: dense, the searched 93% steps, uniform 93% timestep reuse and DDIM-7 / DDIM-3 on the test
-#   seeds, rendering every env step (about 40 min per method on 2 CPU cores);
-# - latency: each of those against dense at batch 1 and 28, with the breakdown (image encoder,
-#   condition, pruner, steps); run it on a quiet machine.
+# - success: dense, the searched 93% steps and DDIM-7 / DDIM-3 on the test seeds, rendering every env
+#   step (about 1.5 h per method on 2 shared CPU cores);
+# - latency: each of those and uniform 93% timestep reuse against dense at batch 1 and 28, with the
+#   breakdown (image encoder, condition, pruner, steps); run it on a quiet machine.
 # Every stage is skipped when its output exists. Hours on 2 CPU cores. Then python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
@@ -36,12 +36,12 @@ parts=${PARTS:-success,latency}
 [ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 16 \
     --out "$TRAJ" --resume --threads "${THREADS:-2}"
 search_steps "$steps" 0.93
-methods=("file:$steps" ddim:7 uniform:0.93:timestep ddim:3)
+methods=("file:$steps" ddim:7 ddim:3)
 if [[ $parts == *success* ]]; then
   for m in "${methods[@]}"; do evaluate --method "$m" --n-envs 10; done
 fi
 if [[ $parts == *latency* ]]; then
-  for m in "${methods[@]}"; do
+  for m in "${methods[@]}" uniform:0.93:timestep; do
     python eval/latency.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" --method "$m" \
         --first-episode 0 --batch 1 28 --resume --threads "${THREADS:-2}"
   done
