@@ -325,3 +325,19 @@ def test_fid_bootstrap_interval_covers_the_expected_fid_and_narrows_with_more_sa
         assert lo < fid < hi and lo < expected < hi
         widths.append(hi - lo)
     assert widths[1] < widths[0] / 2  # about 1 / sqrt(10)
+
+
+@pytest.mark.parametrize("n", [5, 40])  # fewer samples than feature dims (n x n Gram) and more (d x d)
+def test_fid_bootstrap_draws_equal_the_frechet_distance_of_each_resample(n):
+    from image_suite.fid import Stats, fid_interval
+
+    rng = np.random.default_rng(3)
+    d = 8
+    ref = Stats.from_features(rng.normal(size=(50, d)) @ rng.normal(size=(d, d)))
+    pool = rng.normal(0.3, 1.0, size=(n, d)) @ rng.normal(size=(d, d))
+    draws_rng = np.random.default_rng(7)
+    draws = [Stats.from_features(pool[draws_rng.integers(0, n, n)]).fid(ref) for _ in range(9)]
+    lo, hi = np.quantile(draws, [0.025, 0.975])
+    fid = Stats.from_features(pool).fid(ref)
+    np.testing.assert_allclose(fid_interval(pool, ref, fid, resamples=9, seed=7), (2 * fid - hi, 2 * fid - lo),
+                               rtol=1e-6)
