@@ -69,8 +69,13 @@ def test_image_encoder_runs_once_per_call_and_is_timed():
         for c in range(2):
             pol.predict_action(image_obs(3, c), torch.Generator().manual_seed(c))
         timing = acc.summary().calls[-1].timing
+        phases = acc.summary().timing(acc.summary().calls[-1:])
     assert calls == [6, 6]
     assert timing["image_encoder"] > 0 and timing["total"] >= timing["image_encoder"]
+    # the breakdown's phases add up to the call: the encoder is not counted again in the rest
+    parts = ("encoder", "wait", "decoder", "engine", "image_encoder", "scheduler_and_rest")
+    assert sum(phases.get(k, 0.0) for k in parts) == pytest.approx(phases["total"], rel=1e-5)
+    assert phases["scheduler_and_rest"] < phases["total"] - 0.9 * phases["image_encoder"]
 
 
 def test_encoder_share_timer_times_each_call_and_puts_the_encoder_back():

@@ -306,6 +306,7 @@ class Accelerator:
             site_of_branch=list(self._layout.site_of),
             plan=self.plan.describe(),
             directions=self.directions,
+            timer_keys=[key for _, _, key in self.target.timers],
         )
 
     # ------------------------------------------------------------------ one denoising step

@@ -48,6 +48,7 @@ class Summary:
     site_of_branch: list[int]
     plan: str
     directions: Sequence[str]
+    timer_keys: Sequence[str] = ()  # work timed before the denoising loop (e.g. an image encoder)
 
     # ---------------------------------------------------------------- numbers
     @staticmethod
@@ -126,7 +127,7 @@ class Summary:
 
     def timing(self, calls: Optional[Sequence[CallRecord]] = None) -> dict[str, float]:
         """Median seconds per call of each recorded phase (encoder, pruner, wait, decoder, reuse_steps
-        (part of decoder), engine, scheduler_and_rest, total) over ``calls`` (default: the calls that were not dense first calls of an episode)."""
+        (part of decoder), engine, the adapter's timers such as image_encoder, scheduler_and_rest, total) over ``calls`` (default: the calls that were not dense first calls of an episode)."""
         calls = [c for c in self.calls if not c.dense] if calls is None else calls
         rows = []
         for c in calls:
@@ -134,7 +135,8 @@ class Summary:
             if "total" in t:  # the sampling loop outside the denoiser: scheduler steps, normalisation, noise
                 # ("wait" holds the pruner's time the sampling thread spent on it: all of it when it
                 # ran in that thread, the part step 0 did not cover when it overlapped)
-                t["scheduler_and_rest"] = t["total"] - sum(t.get(k, 0.0) for k in ("encoder", "wait", "decoder", "engine"))
+                parts = ("encoder", "wait", "decoder", "engine", *self.timer_keys)
+                t["scheduler_and_rest"] = t["total"] - sum(t.get(k, 0.0) for k in parts)
             rows.append(t)
         keys = sorted({k for t in rows for k in t})
         return {k: float(torch.tensor([t[k] for t in rows if k in t]).median()) for k in keys}
