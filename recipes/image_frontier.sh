@@ -6,7 +6,7 @@
 # 0.8), the searched steps and the TTS step pruner (order-2 forecasting) served at RHO 0.6-0.9; on the
 # 20-step base (+ddim:20) FORA (N = 2 3), TaylorSeer (N = 3), ToCa (0.6), the searched steps at RHO 0.5
 # and the TTS step pruner trained on them. A run is skipped when its JSON has a FID interval (older runs
-# without one are redone). About 10 min per FID run on 2 CPU cores, hours in all; PARTS=runs,latency
+# without one are redone). About 7 min per FID run on 2 quiet CPU cores, hours in all; PARTS=runs,latency
 # picks stages. Then the figure docs/frontier_digits.png and python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
