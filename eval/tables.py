@@ -22,6 +22,16 @@ from common import frontier  # noqa: E402
 from robot_suite.tasks import TASKS  # noqa: E402
 
 
+def complete_runs(folder: Path, keep=lambda r: "success_rate" in r) -> dict[tuple[str, str], list[dict]]:
+    """Finished result runs in ``folder`` that ``keep`` accepts, grouped by (policy, method)."""
+    runs: dict[tuple[str, str], list[dict]] = {}
+    for path in sorted(folder.glob("*.json")):
+        r = json.loads(path.read_text())
+        if keep(r) and r.get("episodes_done") is not None and r["episodes_done"] == r.get("episodes_requested"):
+            runs.setdefault((policy_of(r), r["method"]), []).append(r)
+    return runs
+
+
 def robot_table(folder: Path) -> str:
     rows = ["| task | method | success | episodes | seeds | batch | call latency median / p90 (ms) | calls/s | actions/s per env | sparsity | MACs ratio dense / (realised + pruner) | git SHA |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -45,11 +55,7 @@ def robot_table(folder: Path) -> str:
 
 def summary_table(folder: Path) -> str:
     """Success per (task, method): mean +- std over evaluation seeds (complete runs only)."""
-    runs: dict[tuple[str, str], list[dict]] = {}
-    for path in sorted(folder.glob("*.json")):
-        r = json.loads(path.read_text())
-        if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
-            runs.setdefault((policy_of(r), r["method"]), []).append(r)
+    runs = complete_runs(folder)
     rows = ["| task | method | success mean | std | evaluation seeds (first test seed of each run) | sparsity "
             "| vs dense on the same episodes: difference (95% CI), episodes only dense / only this method solved, "
             "sign test |",
@@ -80,12 +86,8 @@ def steps_table(folder: Path) -> str:
     """Does the number of denoising steps matter: success of dense DDPM-100 and the few-step samplers
     (DDIM-k, DDIM-k with trailing timesteps, DPM-Solver++-k) per policy and split (complete runs;
     the cell also gives the episodes it pools), and dense minus the best 3-step sampler."""
-    runs: dict[tuple[str, str], list[dict]] = {}
-    for path in sorted(folder.glob("*.json")):
-        r = json.loads(path.read_text())
-        if "success_rate" in r and r["episodes_done"] == r["episodes_requested"] and \
-                (r["method"] == "dense" or FEW_STEP.match(r["method"])):
-            runs.setdefault((policy_of(r), r["method"]), []).append(r)
+    runs = complete_runs(folder, lambda r: "success_rate" in r
+                         and (r["method"] == "dense" or FEW_STEP.match(r["method"]) is not None))
     methods = sorted({m for _, m in runs}, key=_few_step_key)
     rows = ["| policy | " + " | ".join(f"`{m}`" for m in methods) + " | dense - best 3-step |",
             "|---|" + "---|" * (len(methods) + 1)]
@@ -157,11 +159,7 @@ def coverage_table(folder: Path) -> str:
     """Push-T's own score next to success: the mean best goal coverage per episode (Diffusion Policy
     reports it) of every method run on a Push-T policy, by computed denoiser steps per call, with the
     paired difference to dense on the same episodes (mean and 95% t-interval)."""
-    runs: dict[tuple[str, str], list[dict]] = {}
-    for path in sorted(folder.glob("*.json")):
-        r = json.loads(path.read_text())
-        if r.get("mean_max_coverage") is not None and r["episodes_done"] == r["episodes_requested"]:
-            runs.setdefault((policy_of(r), r["method"]), []).append(r)
+    runs = complete_runs(folder, lambda r: r.get("mean_max_coverage") is not None)
     if not runs:
         return "No Push-T runs yet (recipes/pusht_testbed.sh).\n"
     rows = ["| policy | method | computed steps per call | success | mean best coverage | vs dense, paired "
@@ -270,11 +268,7 @@ def table7(folder: Path) -> str:
     """The paper's Table 7 shape at 93% (recipes/table7.sh): per policy with its static direction rows
     or reference-recipe pruners, on the test seeds, the score and the paired difference to dense on the
     same episodes: success, or for Push-T (whose policies rarely succeed) the mean best coverage."""
-    runs: dict[tuple[str, str], list[dict]] = {}
-    for path in sorted(folder.glob("*.json")):
-        r = json.loads(path.read_text())
-        if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
-            runs.setdefault((policy_of(r), r["method"]), []).append(r)
+    runs = complete_runs(folder)
     policies = sorted({pol for pol, m in runs if ("_reference_" in m or m == "rotating:0.93:rollout")
                        and not pol.endswith("validation")})
     if not policies:
@@ -376,11 +370,7 @@ def visuomotor_table(folder: Path) -> str:
     where eval/latency.py timed the method, its call latency against dense with the image encoder's
     share and the fraction reached of the ideal speed-up (reused branches free, encoder and computed
     branches as in the dense call)."""
-    runs: dict[tuple[str, str], list[dict]] = {}
-    for path in sorted(folder.glob("*.json")):
-        r = json.loads(path.read_text())
-        if r.get("obs_type") == "image" and r.get("episodes_done") == r.get("episodes_requested"):
-            runs.setdefault((policy_of(r), r["method"]), []).append(r)
+    runs = complete_runs(folder, lambda r: r.get("obs_type") == "image")
     timed: dict[tuple[str, str], dict] = {}
     policies = {p for p, _ in runs}
     for path in sorted(folder.glob("latency_*.json")):
@@ -545,11 +535,7 @@ def headline_robot(folder: Path) -> str:
     measured against dense in one process at batch 1 and 28, where it was measured (from the frontier's
     latencies when they exist, else eval/latency.py's), and each sparse row against the best fewer-step
     sampler as fast."""
-    runs: dict[tuple[str, str], list[dict]] = {}
-    for path in sorted(folder.glob("*.json")):
-        r = json.loads(path.read_text())
-        if "success_rate" in r and r["episodes_done"] == r["episodes_requested"]:
-            runs.setdefault((policy_of(r), r["method"]), []).append(r)
+    runs = complete_runs(folder)
     speed: dict[tuple[str, str], dict[int, float]] = {}
     for path in sorted(folder.glob("latency_*.json")):
         r = json.loads(path.read_text())
