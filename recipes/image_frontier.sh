@@ -28,10 +28,10 @@ pruner20=digits_tts_steps_ddim20_0.5
     --objective output --forecast 2 --calls 64 --batch 64 --out "$steps50"
 [ -f "$steps20" ] || python eval/search_static.py --dit checkpoints/digits_dit --sparsity 0.5 --steps 20 --cfg 1.5 \
     --objective output --forecast 2 --calls 64 --batch 64 --out "$steps20"
-trained "$pruner20" || python eval/train_image_pruner.py --model checkpoints/digits_dit \
+trained "$pruner20" || { python eval/train_image_pruner.py --model checkpoints/digits_dit \
     --out "checkpoints/pruners/$pruner20" --steps 20 --sparsity 0.5 --prior "$steps20" --tie-branches --forecast 2 \
     --train-budget --prior-margin 0.5 --lr 3e-3 --val-mode budget --n-train 128 --n-val 32 --epochs 3 --threads 2 \
-    --run-dir "runs/$pruner20" --resume
+    --run-dir "$(state_dir "$pruner20")" --resume && finish_state "$pruner20"; }
 methods=(dense)
 for k in 5 8 10 15 20; do methods+=("ddim:$k"); done
 for n in 2 3 5; do methods+=("every_n:$n:timestep"); done

@@ -17,7 +17,7 @@ train_pruner() {  # train_pruner NAME ARGS...: skipped if its training finished
   if trained "$name" && [ -z "${FORCE:-}" ]; then echo "[skip] $name"; return; fi
   python eval/train_image_pruner.py --model checkpoints/digits_dit --out "checkpoints/pruners/${name}" \
       --sparsity $RHO --prior every_n:5 --val-mode budget --n-train 128 --n-val 32 --epochs 3 \
-      --threads 2 --run-dir "runs/${name}" --resume "$@"
+      --threads 2 --run-dir "$(state_dir "$name")" --resume "$@" && finish_state "$name"
 }
 bac=results/schedules/digits_bac_$RHO.json
 steps=results/schedules/digits_steps_$RHO.json

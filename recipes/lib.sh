@@ -2,6 +2,15 @@
 # shellcheck disable=SC1091
 source "$(dirname "${BASH_SOURCE[0]}")/../scripts/env.sh"
 
+# state_dir NAME: where a recipe's long training keeps its resumable state (optimizer, step, RNGs).
+# It is tracked, not ignored: a new checkout of the repository has no ignored files, so the state of a
+# training cut off by the end of a session survives only if it is committed. Commit it when you stop;
+# each recipe deletes it (finish_state) once its training has finished.
+state_dir() { echo "checkpoints/in_progress/$1"; }
+
+# finish_state NAME: drop NAME's resumable state once its training has written its final checkpoint.
+finish_state() { rm -rf "$(state_dir "$1")"; }
+
 # eval_seeds ROBOT_ARGS...: eval/robot.py on 50 test episodes for each of $SEEDS (default: the 3
 # evaluation seeds); --resume skips finished runs and continues cut-off ones; THREADS sets torch threads.
 eval_seeds() {
@@ -57,9 +66,9 @@ sys.exit(0 if training_finished(sys.argv[1]) else 1)' "checkpoints/pruners/$1.js
 # skipped when its training finished: trained); NTRAIN / NVAL (default 16) / EPOCHS set the sizes.
 train_named() {
   local name=$1; shift
-  trained "$name" || python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
+  trained "$name" || { python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
       --out "checkpoints/pruners/$name" --n-train "$NTRAIN" --n-val "${NVAL:-16}" --epochs "$EPOCHS" --paired --threads "${THREADS:-2}" \
-      --run-dir "runs/$name" --resume $(all_episodes) "$@"
+      --run-dir "$(state_dir "$name")" --resume $(all_episodes) "$@" && finish_state "$name"; }
 }
 
 # search_steps OUT RHO [SEARCH_ARGS...]: whole compute steps placed by output L1 (eval/search_static.py)

@@ -25,12 +25,12 @@ TRAJ=data/trajectories/$(basename "$CKPT").pt
 steps=results/schedules/${TASK}-$(basename "$CKPT")_steps_0.93.json
 [ -f "$data" ] || python eval/collect_demos.py --task "$TASK" --episodes 100 --seed 0 --out "$data"
 [ -f "$images" ] || python eval/render_demos.py --data "$data" --out "$images" --size 84 --threads "${THREADS:-2}"
-[ -f "$first.json" ] || python eval/train_policy.py --data "$images" --obs-type image \
+[ -f "$first.json" ] || { python eval/train_policy.py --data "$images" --obs-type image \
     --encoder-width "${ENCODER_WIDTH:-16}" --steps 6000 --batch 64 --save-every 100 --out "$first" --resume \
-    --threads "${THREADS:-2}"
-[ -f "$CKPT.json" ] || python eval/train_policy.py --data "$images" --obs-type image --init "$first" \
+    --run-dir "$(state_dir "${first##*/}")" --threads "${THREADS:-2}" && finish_state "${first##*/}"; }
+[ -f "$CKPT.json" ] || { python eval/train_policy.py --data "$images" --obs-type image --init "$first" \
     --encoder-width "${ENCODER_WIDTH:-16}" --steps "${MORE_STEPS:-8000}" --batch 64 --save-every 100 --out "$CKPT" \
-    --resume --threads "${THREADS:-2}"
+    --resume --run-dir "$(state_dir "${CKPT##*/}")" --threads "${THREADS:-2}" && finish_state "${CKPT##*/}"; }
 parts=${PARTS:-success,latency}
 [[ $parts != *success* ]] || evaluate --method dense --n-envs 10
 [ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 16 \

@@ -66,3 +66,28 @@ def test_cli_recipe_reference_sets_the_defaults_and_explicit_options_win(tmp_pat
     assert (meta["hidden"], meta["heads"], meta["ffn"], meta["lr"], meta["lr_schedule"]) == (512, 8, 1024, 1e-4, "linear")
     assert meta["clip_grad"] is None and meta["paired"] is False and meta["epochs"] == 1 and meta["batch"] == 2
     assert [float(b) for b in meta["head_bias"].split(",")] == [0.0, 0.0, 0.0] and meta["recipe"] == "reference"
+
+
+def test_recipes_keep_training_state_where_git_tracks_it():
+    """A new checkout has no ignored files: every recipe training resumes from ``state_dir`` (a
+    tracked folder, committed at a stop), and ``.gitignore`` does not hide that folder."""
+    import re
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    run_dirs = []
+    for recipe in sorted((repo / "recipes").glob("*.sh")):
+        text = recipe.read_text()
+        for line in text.splitlines():
+            if re.search(r"python eval/train_(policy|pruner|image_pruner)\.py", line) and "--export" not in line:
+                call = text[text.index(line):].split(";", 1)[0]  # the command up to its first ';'
+                assert "--run-dir \"$(state_dir" in call, f"{recipe.name}: a training without state_dir: {line.strip()}"
+        run_dirs += re.findall(r"--run-dir \S+", text)
+    assert run_dirs and all("state_dir" in r for r in run_dirs), run_dirs
+    lib = (repo / "recipes" / "lib.sh").read_text()
+    folder = re.search(r'state_dir\(\) \{ echo "([^"$]+)/\$1"; \}', lib).group(1)
+    if shutil.which("git") and (repo / ".git").exists():
+        ignored = subprocess.run(["git", "check-ignore", "-q", f"{folder}/some_training/state.pt"], cwd=repo)
+        assert ignored.returncode == 1, f"{folder} is ignored by .gitignore: its state would not survive a new checkout"
