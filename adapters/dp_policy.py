@@ -209,7 +209,7 @@ def save_policy(policy: DiffusionTransformerLowdimPolicy, path: Path, metadata: 
     from safetensors.torch import save_file
 
     weights, meta_path = checkpoint_pair(path)
-    state = {k: (v.to(dtype) if k.startswith(("model.", "obs_encoder.")) and v.is_floating_point() else v).contiguous()
+    state = {k: (v.to(dtype) if k.startswith(("model.", "obs_encoder.")) and v.is_floating_point() else v).contiguous().cpu()
              for k, v in policy.state_dict().items()}
     with atomic_path(weights) as tmp:
         save_file(state, str(tmp))

@@ -1,4 +1,5 @@
-"""Train a low-dim Diffusion Policy transformer (DP-T) on a robomimic-layout dataset, on CPU.
+"""Train a low-dim Diffusion Policy transformer (DP-T) on a robomimic-layout dataset, on the CPU or a
+GPU (``--device cuda``).
 
     python eval/train_policy.py --data data/lift_expert.hdf5 --out checkpoints/lift_dpt \
         --steps 6000 --batch 128 --seed 0
@@ -30,7 +31,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import parse_args, provenance  # noqa: E402
+from common import add_device_option, parse_args, provenance, torch_device  # noqa: E402
 from common.model_training import EMA, restore_training_state, save_training_state  # noqa: E402
 
 from tts.adapters.dp_image_policy import CAMERAS, DiffusionTransformerHybridImagePolicy, ImageEncoderConfig  # noqa: E402
@@ -132,7 +133,9 @@ def main(argv=None) -> None:
     ap.add_argument("--encoder-width", type=int, default=16,
                     help="image: channels of the ResNet-18 trunk's first stage (64 = torchvision's)")
     ap.add_argument("--crop", type=int, default=None, help="image: crop size (default: image size - 8)")
+    add_device_option(ap)
     args = parse_args(ap, argv)
+    device = torch_device(args.device)
     if args.export_only:
         args.resume = True
 
@@ -169,6 +172,7 @@ def main(argv=None) -> None:
     policy.action_normalizer.fit(act_w)
     if args.init is not None:
         init_from(policy, args.init)
+    policy.to(device)
     ema = EMA(policy, lambda n: min(0.9999, max(0.0, 1 - (1 + n) ** -0.75)))  # Diffusion Policy's schedule
     trained = list(policy.model.parameters()) + (list(policy.obs_encoder.parameters()) if image_cfg else [])
     opt = torch.optim.AdamW(trained, lr=args.lr, betas=(0.9, 0.95), weight_decay=1e-3)
@@ -190,7 +194,9 @@ def main(argv=None) -> None:
     with tqdm(total=args.steps, initial=step, desc=f"train {args.out.name}", disable=args.export_only) as bar:
         while step < args.steps and not args.export_only:
             idx = torch.randint(0, n_windows, (args.batch,), generator=gen)
-            loss = policy.compute_loss(*((obs_w[idx], act_w[idx]) if image_cfg is None else data.batch(idx)))
+            obs, act = (obs_w[idx], act_w[idx]) if image_cfg is None else data.batch(idx)
+            obs = obs.to(device) if torch.is_tensor(obs) else {k: v.to(device) for k, v in obs.items()}
+            loss = policy.compute_loss(obs, act.to(device))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(trained, 1.0)

@@ -1,4 +1,5 @@
-"""Train a TTS pruner on dense-policy trajectories, on CPU (:func:`tts.policy_training.train_policy_pruner`).
+"""Train a TTS pruner on dense-policy trajectories (:func:`tts.policy_training.train_policy_pruner`),
+on the CPU or a GPU (``--device cuda``).
 
     python eval/train_pruner.py --trajectories data/trajectories/lift.pt --checkpoint checkpoints/lift_dpt \
         --out checkpoints/lift_pruner --sparsity 0.93 --n-train 32 --n-val 16 --epochs 6
@@ -22,7 +23,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import add_all_episodes_option, parse_args  # noqa: E402
+from common import add_all_episodes_option, add_device_option, parse_args, torch_device  # noqa: E402
 from common.training_args import add_training_args, training_metadata  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
@@ -60,17 +61,20 @@ def main(argv=None) -> None:
                                                            "lr_schedule", "clip_grad", "batch", "epochs")},
                         head_bias=",".join(str(b) for b in recipe.head_bias))
     add_all_episodes_option(ap)
+    add_device_option(ap)
     args = parse_args(ap, argv)
+    device = torch_device(args.device)
     try:
         config = PolicyPrunerTrainingConfig.from_dict(vars(args))
     except ValueError as e:
         ap.error(str(e))
     torch.manual_seed(args.seed)  # before the policy is built: the pruner's initial weights follow it
     episodes, traj_meta = load_trajectories(args.trajectories, successful_only=not args.all_episodes)
-    policy = load_policy(args.checkpoint)
+    policy = load_policy(args.checkpoint).to(device)
     meta = training_metadata(args)
     meta.update(policy=str(args.checkpoint), trajectory_collection=traj_meta.get("command"))
-    train_policy_pruner(policy, episodes, config, pruner=build_policy_pruner(policy, config), metadata=meta)
+    pruner = build_policy_pruner(policy, config).to(device)
+    train_policy_pruner(policy, episodes, config, pruner=pruner, metadata=meta)
 
 
 if __name__ == "__main__":

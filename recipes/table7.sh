@@ -13,7 +13,8 @@
 #             rollout / all three) and, for all three, from the searched prior; the pruner's
 #             forward/backward in bfloat16 autocast (PRECISION=float32 for full precision). A
 #             reference-length training is hours on 2 CPU cores (the device machine of a session, when
-#             lent, is the place for it); each resumes from its state_dir (recipes/lib.sh) after an interruption. PRUNERS picks
+#             lent, is the place for it: DEVICE=cuda); each resumes from its state_dir (recipes/lib.sh) after
+#             an interruption. PRUNERS picks
 #             some of "omni prior forward timestep rollout" (e.g. two at once with THREADS=1 each)
 #   analysis  the prior pruner's agreement with the prior on held-out episodes, the oracle headroom
 #             around the searched steps, the mask and rollout-feature-similarity figures
@@ -59,7 +60,7 @@ reference_pruner() {  # NAME DIRECTIONS [ARGS...]: the reference recipe on 96 tr
   trained "$name" || { python eval/train_pruner.py --recipe reference --trajectories "$TRAJ" \
       --checkpoint "$CKPT" --out "checkpoints/pruners/$name" --directions "$dirs" --sparsity 0.93 \
       --n-train 96 --n-val 16 --precision "${PRECISION:-bfloat16}" --loss-space "$loss_space" \
-      --threads "${THREADS:-2}" \
+      --threads "${THREADS:-2}" ${DEVICE:+--device "$DEVICE"} \
       --run-dir "$(state_dir "$name")" --resume $(all_episodes) "$@" && finish_state "$name"; }
 }
 if [[ $parts == *pruners* ]]; then

@@ -6,7 +6,7 @@
 # width ENCODER_WIDTH, default 16, random 76x76 crops, the proprioception keys; 6000 steps at batch 64
 # (checkpoints/<task>_image_dpt: below the 90% Lift target, see docs/results/visuomotor.md), then MORE_STEPS (default
 # 8000) more from those weights with a fresh learning-rate cycle (checkpoints/<task>_image_dpt_14k);
-# resumable), 16 recorded trajectories with their camera windows (the schedule search's
+# resumable; DEVICE=cuda trains on a GPU), 16 recorded trajectories with their camera windows (the schedule search's
 # calibration calls and the latency tools' observations), the searched 93% steps, and then two stages
 # (PARTS, default success,latency):
 # - success: dense, the searched 93% steps and DDIM-7 / DDIM-3 on the test seeds, rendering every env
@@ -27,10 +27,10 @@ steps=results/schedules/${TASK}-$(basename "$CKPT")_steps_0.93.json
 [ -f "$images" ] || python eval/render_demos.py --data "$data" --out "$images" --size 84 --threads "${THREADS:-2}"
 [ -f "$first.json" ] || { python eval/train_policy.py --data "$images" --obs-type image \
     --encoder-width "${ENCODER_WIDTH:-16}" --steps 6000 --batch 64 --save-every 100 --out "$first" --resume \
-    --run-dir "$(state_dir "${first##*/}")" --threads "${THREADS:-2}" && finish_state "${first##*/}"; }
+    --run-dir "$(state_dir "${first##*/}")" ${DEVICE:+--device "$DEVICE"} --threads "${THREADS:-2}" && finish_state "${first##*/}"; }
 [ -f "$CKPT.json" ] || { python eval/train_policy.py --data "$images" --obs-type image --init "$first" \
     --encoder-width "${ENCODER_WIDTH:-16}" --steps "${MORE_STEPS:-8000}" --batch 64 --save-every 100 --out "$CKPT" \
-    --resume --run-dir "$(state_dir "${CKPT##*/}")" --threads "${THREADS:-2}" && finish_state "${CKPT##*/}"; }
+    --resume --run-dir "$(state_dir "${CKPT##*/}")" ${DEVICE:+--device "$DEVICE"} --threads "${THREADS:-2}" && finish_state "${CKPT##*/}"; }
 parts=${PARTS:-success,latency}
 [[ $parts != *success* ]] || evaluate --method dense --n-envs 10
 [ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 16 \

@@ -353,7 +353,7 @@ TRAIN_PRUNER_METADATA = {
     "prior_margin", "tie_branches", "step_query", "val_mode", "seed", "run_dir", "resume", "n_train", "n_val", "paired",
     "loss_space", "static", "head_bias", "init_schedule", "threads", "n_train_episodes", "n_val_episodes", "policy",
     "trajectory_collection", "best_epoch", "history", "train_seconds", "pruner_macs_per_call", "heads", "ffn",
-    "lr_schedule", "clip_grad", "recipe", "all_episodes", "precision"}
+    "lr_schedule", "clip_grad", "recipe", "all_episodes", "precision", "device"}
 
 
 def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
@@ -386,6 +386,10 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
         train_pruner.main(args + ["--resume", "--precision", "bfloat16"])
     with pytest.raises(ValueError, match="other loss_space"):  # so would the scale of the L1 term
         train_pruner.main(args + ["--resume", "--loss-space", "normalized"])
+    assert pr.metadata["device"] == "cpu"
+    if not torch.cuda.is_available():  # a GPU that is not there is an error, not a silent CPU run
+        with pytest.raises(SystemExit, match="no such CUDA device"):
+            train_pruner.main(args + ["--resume", "--device", "cuda"])
     import robot  # the eval report reads the pruner's training metadata from the same pair of files
     from common.methods import parse_method
 

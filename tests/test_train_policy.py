@@ -47,6 +47,9 @@ def test_a_run_shorter_than_its_warm_up_trains(tmp_path, one_thread):
     train_policy.main(args + ["--out", str(tmp_path / "b"), "--steps", "4", "--run-dir", str(tmp_path / "rb")])
     a, b = load_policy(tmp_path / "a").model.state_dict(), load_policy(tmp_path / "b").model.state_dict()
     assert any(not torch.equal(a[k], b[k]) for k in a)  # the two extra steps changed the weights
+    if not torch.cuda.is_available():  # a GPU that is not there is an error, not a silent CPU run
+        with pytest.raises(SystemExit, match="no such CUDA device"):
+            train_policy.main(args + ["--out", str(tmp_path / "c"), "--steps", "2", "--device", "cuda:0"])
 
 
 def test_push_t_data_trains_on_its_own_observation_keys(tmp_path, one_thread):

@@ -110,14 +110,14 @@ def _run_group(policy, plan: PrunerPlan, group, config: PolicyPrunerTrainingConf
     sums = {"l1": 0.0, "sparsity": 0.0, "n": 0.0}
     for frame in lockstep_frames(group, replay_keys(policy)):
         obs = obs_dict(policy, frame.data["obs"], frame.data)
-        gen = _generators(frame, config.paired, rng)
-        target = frame.data["action_pred"].float()
+        gen = _generators(frame, config.paired, rng)  # CPU generators: the same noise on every device
+        target = frame.data["action_pred"].float().to(policy.device)
         if normalized:
             target = policy.action_normalizer.normalize(target)
         if frame.first:
             policy.predict_action(obs, generator=gen)  # dense: fills the rollout cache
             continue
-        w = frame.weight
+        w = frame.weight.to(policy.device)
         pred = policy.predict_action(obs, generator=gen, enable_grad=opt is not None)["action_pred"]
         if normalized:
             pred = policy.action_normalizer.normalize(pred)
@@ -132,7 +132,7 @@ def _run_group(policy, plan: PrunerPlan, group, config: PolicyPrunerTrainingConf
             reuse = out["reuse"].detach()
         else:
             l1 = float(((pred - target).abs().reshape(len(w), -1).mean(1) * w).sum() / w.sum().clamp_min(1))
-            reuse = (plan.last_codes != 0).float().mean((1, 2))
+            reuse = (plan.last_codes != 0).float().mean((1, 2)).to(w.device)
         n = float(w.sum())
         sums["l1"] += l1 * n
         sums["sparsity"] += float((reuse * w).sum())
@@ -145,7 +145,8 @@ def train_policy_pruner(policy, episodes: Sequence[dict], config: PolicyPrunerTr
                         pruner: Optional[PrunerModule] = None, metadata: Optional[Mapping[str, Any]] = None,
                         log: Optional[Callable[[str], None]] = print) -> PrunerModule:
     """Train a pruner for ``policy`` on recorded ``episodes`` (the first ``n_train`` for training,
-    the next ``n_val`` for validation; see :func:`tts.trajectories.load_trajectories`). Writes
+    the next ``n_val`` for validation; see :func:`tts.trajectories.load_trajectories`) on the
+    policy's device (the pruner must be on the same one). Writes
     ``<config.out>.safetensors/.json`` and returns the best epoch's pruner, its checkpoint metadata in
     ``.metadata``. ``pruner``: train this one instead of :func:`build_policy_pruner`'s (which is
     seeded with ``config.seed``). ``metadata``: extra checkpoint metadata (e.g. provenance)."""
@@ -177,7 +178,7 @@ def train_policy_pruner(policy, episodes: Sequence[dict], config: PolicyPrunerTr
                     for g in episode_groups(val, config.batch, None)]
 
     def warm_start():
-        windows = torch.as_tensor(np.concatenate([e["obs"] for e in train]))
+        windows = torch.as_tensor(np.concatenate([e["obs"] for e in train])).to(policy.device)
         with torch.no_grad():
             cond = policy.obs_normalizer.normalize(windows)[:, -policy.cfg.n_obs_steps:]
             memory = policy.model.condition_memory(policy.scheduler.timesteps, cond)

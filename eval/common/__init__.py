@@ -71,6 +71,29 @@ def parse_args(ap, argv=None):
     return args
 
 
+def add_device_option(ap) -> None:
+    """``--device``: where a trainer runs the policy and the model it trains (``cpu``, ``cuda``, ``cuda:1``)."""
+    ap.add_argument("--device", default="cpu",
+                    help="torch device of the training: cpu (default) or cuda[:N] (a GPU turns hours into minutes)")
+
+
+def torch_device(name: str):
+    """The ``torch.device`` called ``name``; a CUDA device this machine does not have is an error
+    (SystemExit with what to do), not a silent fall-back to the CPU."""
+    import torch
+
+    try:
+        device = torch.device(name)
+    except RuntimeError as e:
+        raise SystemExit(f"--device {name!r}: {e}") from None
+    if device.type == "cuda" and (not torch.cuda.is_available() or (device.index or 0) >= torch.cuda.device_count()):
+        raise SystemExit(f"--device {name!r}: this machine has no such CUDA device "
+                         f"({torch.cuda.device_count()} visible); use --device cpu")
+    if device.type not in ("cpu", "cuda"):
+        raise SystemExit(f"--device {name!r}: only cpu and cuda devices are supported")
+    return device
+
+
 def policy_slug(task: str, checkpoint: Any = None) -> str:
     """``task`` for the bundled ``checkpoints/<task>_dpt`` (or no checkpoint), else ``task-<checkpoint
     name>``: result files and figures of different policies never share a name."""
