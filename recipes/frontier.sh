@@ -34,8 +34,8 @@ for k in 2 3 5 6 7 10; do methods+=("dpm:$k"); done
 for rho in 0.9 0.93 0.95 0.97 0.98; do
   search_steps "${sched}_steps_${rho}.json" "$rho"
   methods+=("file:${sched}_steps_${rho}.json")
-  if [ -n "$bundled" ] && [ -f "checkpoints/pruners/${TASK}_tts_0.93.json" ]; then
-    methods+=("pruner:checkpoints/pruners/${TASK}_tts_0.93@${rho}")
+  if [ -n "$bundled" ] && [ -f "checkpoints/pruners/$TTS_PRUNER.json" ]; then
+    methods+=("pruner:checkpoints/pruners/$TTS_PRUNER@${rho}")
   fi
 done
 search_steps "${sched}_steps_ddim20_0.65.json" 0.65 --sampler ddim:20

@@ -38,11 +38,13 @@ step_pruner() {
 
 # robot_task TASK: the per-task paths and training sizes the robot recipes share (TASK, CKPT, TRAJ,
 # NTRAIN: the table's pruners train on 96 Lift / 89 Can trajectories with the next 16 held out for
-# validation, EPOCHS: 3 Lift / 1 Can unless set).
+# validation, EPOCHS: 3 Lift / 1 Can unless set; TTS_PRUNER: the name of the task's TTS row, on Can
+# the one from the steps searched on 256 calibration calls).
 robot_task() {
   TASK=$1
   CKPT=checkpoints/${TASK}_dpt
   TRAJ=data/trajectories/${TASK}.pt
+  TTS_PRUNER=${TASK}_tts_0.93$([ "$TASK" = can ] && echo _256calls || true)
   NTRAIN=$([ "$TASK" = can ] && echo 89 || echo 96)
   EPOCHS=${EPOCHS:-$([ "$TASK" = can ] && echo 1 || echo 3)}
 }
