@@ -38,6 +38,8 @@ for rho in 0.9 0.93 0.95 0.97 0.98; do
     methods+=("pruner:checkpoints/pruners/$TTS_PRUNER@${rho}")
   fi
 done
+# the searched steps the task's TTS row starts from, where they are not the 64-call ones (Can: 256 calls)
+methods+=("file:${sched}_steps_0.93_256calls.json")
 search_steps "${sched}_steps_ddim20_0.65.json" 0.65 --sampler ddim:20
 search_steps "${sched}_steps_ddim10_0.3.json" 0.3 --sampler ddim:10
 methods+=("uniform:0.65:timestep+ddim:20" "file:${sched}_steps_ddim20_0.65.json+ddim:20"
