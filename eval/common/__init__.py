@@ -74,7 +74,7 @@ def parse_args(ap, argv=None):
 def add_device_option(ap) -> None:
     """``--device``: where a trainer runs the policy and the model it trains (``cpu``, ``cuda``, ``cuda:1``)."""
     ap.add_argument("--device", default="cpu",
-                    help="torch device of the training: cpu (default) or cuda[:N] (a GPU turns hours into minutes)")
+                    help="torch device of the training: cpu (default) or cuda[:N]")
 
 
 def torch_device(name: str):
