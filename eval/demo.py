@@ -63,6 +63,10 @@ def main(argv=None) -> None:
                     help=f"a static plan or pruner (paths relative to the repo): {VOCABULARY}")
     ap.add_argument("--seed", type=int, default=100000)
     ap.add_argument("--engine", action="store_true", help="engine benchmark on random-weight models instead")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch threads of the robot demo (default 1: a policy this small gains little from a "
+                         "second thread, and on some hosts waking it after every batch of env steps cost more "
+                         "than a short call, which distorted the speed-ups)")
     args = ap.parse_args(argv)
     torch.manual_seed(0)
     if args.engine:
@@ -82,6 +86,7 @@ def main(argv=None) -> None:
         raise SystemExit("--method: give a sparse plan or pruner to compare with dense")
     if method.path is not None and not method.path.is_absolute():
         method = parse_method(args.method.replace(str(method.path), str(REPO / method.path), 1), kinds=ROBOT_KINDS)
+    torch.set_num_threads(args.threads)
     robot_demo(args.checkpoint, args.episodes, method, args.seed)
 
 
