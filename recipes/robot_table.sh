@@ -40,6 +40,6 @@ latency ddim:7
     --checkpoint "$CKPT" --trajectories "$TRAJ"
 if [ "$TASK" = can ]; then  # Can's TTS row: the steps searched on 256 calls, then the pruner from them
   PARTS="c256 c256tts c256ts" bash "$(dirname "$0")/robot_baselines.sh"
-  checks "${TASK}_tts_0.93_256calls"
+  checks "$TTS_PRUNER"
 fi
 python eval/tables.py
