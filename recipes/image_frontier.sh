@@ -7,7 +7,8 @@
 # 20-step base (+ddim:20) FORA (N = 2 3), TaylorSeer (N = 3), ToCa (0.6), the searched steps at RHO 0.5
 # and the TTS step pruner trained on them. A run is skipped when its JSON has a FID interval (older runs
 # without one are redone). About 7 min per FID run on 2 quiet CPU cores, hours in all; PARTS=runs,latency
-# picks stages. Then the figure docs/frontier_digits.png and python eval/tables.py
+# picks stages; NPROC=1 samples in one process (next to another job). The 20-step base's schedule and
+# pruner are made when its first run comes. Then the figure docs/frontier_digits.png and eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
 run() {  # run METHOD: one eval/imagenet.py run (2 processes), skipped when it has a FID interval
@@ -26,12 +27,14 @@ pruner20=digits_tts_steps_ddim20_0.5
 [ -f data/digits16.npz ] || python eval/train_dit.py --export-ref data/digits16.npz
 [ -f "$steps50" ] || python eval/search_static.py --dit checkpoints/digits_dit --sparsity 0.8 --steps 50 --cfg 1.5 \
     --objective output --forecast 2 --calls 64 --batch 64 --out "$steps50"
-[ -f "$steps20" ] || python eval/search_static.py --dit checkpoints/digits_dit --sparsity 0.5 --steps 20 --cfg 1.5 \
-    --objective output --forecast 2 --calls 64 --batch 64 --out "$steps20"
-trained "$pruner20" || { python eval/train_image_pruner.py --model checkpoints/digits_dit \
-    --out "checkpoints/pruners/$pruner20" --steps 20 --sparsity 0.5 --prior "$steps20" --tie-branches --forecast 2 \
-    --train-budget --prior-margin 0.5 --lr 3e-3 --val-mode budget --n-train 128 --n-val 32 --epochs 3 --threads 2 \
-    --run-dir "$(state_dir "$pruner20")" --resume && finish_state "$pruner20"; }
+base20() {  # the 20-step base's searched steps and the step pruner trained on them, on first use
+  [ -f "$steps20" ] || python eval/search_static.py --dit checkpoints/digits_dit --sparsity 0.5 --steps 20 \
+      --cfg 1.5 --objective output --forecast 2 --calls 64 --batch 64 --out "$steps20"
+  trained "$pruner20" || { python eval/train_image_pruner.py --model checkpoints/digits_dit \
+      --out "checkpoints/pruners/$pruner20" --steps 20 --sparsity 0.5 --prior "$steps20" --tie-branches --forecast 2 \
+      --train-budget --prior-margin 0.5 --lr 3e-3 --val-mode budget --n-train 128 --n-val 32 --epochs 3 \
+      --threads 2 --run-dir "$(state_dir "$pruner20")" --resume && finish_state "$pruner20"; }
+}
 methods=(dense)
 for k in 5 8 10 15 20; do methods+=("ddim:$k"); done
 for n in 2 3 5; do methods+=("every_n:$n:timestep"); done
@@ -41,7 +44,10 @@ methods+=(every_n:2:timestep+ddim:20 every_n:3:timestep+ddim:20 taylorseer:3:2+d
           "file:$steps20+taylor2+ddim:20" "pruner:checkpoints/pruners/$pruner20@0.5+taylor2+ddim:20")
 parts=${PARTS:-runs,latency}
 if [[ $parts == *runs* ]]; then
-  for m in "${methods[@]}"; do run "$m"; done
+  for m in "${methods[@]}"; do
+    [[ $m != *$pruner20* && $m != *$steps20* ]] || base20
+    run "$m"
+  done
 fi
 if [[ $parts == *latency* ]]; then
   [ -f results/image/frontier_latency.json ] || python eval/image_latency.py --model checkpoints/digits_dit \

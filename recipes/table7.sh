@@ -29,26 +29,31 @@ CKPT=$ckpt
 policy=${TASK}-$(basename "$CKPT")
 parts=${PARTS:-statics,pruners,analysis}
 TRAJ=data/trajectories/${policy}_full.pt
-[ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 112 \
-    --full-horizon --out "$TRAJ" --resume --threads "${THREADS:-2}"
 steps=results/schedules/${policy}_steps_0.93.json
-search_steps "$steps" 0.93
 early=results/schedules/${policy}_steps_0.93_rollout_early.json
-[ -f "$early" ] || python eval/derive_schedule.py "$steps" --early rollout --until 50 --out "$early"
+# need_steps: the 112 full-horizon trajectories, the searched steps and their rollout-early variant,
+# made on first use only, so the rows that need none of them run first on a new checkout.
+need_steps() {
+  [ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 112 \
+      --full-horizon --out "$TRAJ" --resume --threads "${THREADS:-2}"
+  search_steps "$steps" 0.93
+  [ -f "$early" ] || python eval/derive_schedule.py "$steps" --early rollout --until 50 --out "$early"
+}
 omni=${policy}_reference_forward-timestep-rollout_0.93
 prior=${policy}_reference_prior_0.93
 if [[ $parts == *statics* ]]; then
   # shellcheck disable=SC2206
-  statics=(${STATICS:-dense ddim:7 ddim:3 ddim:3:trailing dpm:3 dpm:7 file:STEPS uniform:0.93:forward \
-           uniform:0.93:timestep uniform:0.93:rollout rotating:0.93:rollout file:EARLY})
+  statics=(${STATICS:-dense ddim:7 ddim:3 ddim:3:trailing dpm:3 dpm:7 uniform:0.93:forward \
+           uniform:0.93:timestep uniform:0.93:rollout rotating:0.93:rollout file:STEPS file:EARLY})
   for m in "${statics[@]}"; do
+    [[ $m != file:* ]] || need_steps
     m=${m/file:STEPS/file:$steps}
     evaluate --method "${m/file:EARLY/file:$early}"
   done
   # shellcheck disable=SC2046
-  [ -n "${STATICS:-}" ] || [ -f "results/robot/rollout_age_${policy}.json" ] || python eval/rollout_age.py \
+  [ -n "${STATICS:-}" ] || [ -f "results/robot/rollout_age_${policy}.json" ] || { need_steps; python eval/rollout_age.py \
       --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
-      --methods uniform:0.93:rollout rotating:0.93:rollout "file:$early" $(all_episodes)
+      --methods uniform:0.93:rollout rotating:0.93:rollout "file:$early" $(all_episodes); }
 fi
 # The reference's sparsity weight (lam 1) balances an L1 on actions in [-1, 1] (robosuite's). Push-T's
 # actions are pixel targets (0-512), whose L1 is hundreds of times larger and would drown the sparsity
@@ -63,6 +68,7 @@ reference_pruner() {  # NAME DIRECTIONS [ARGS...]: the reference recipe on 96 tr
       --threads "${THREADS:-2}" ${DEVICE:+--device "$DEVICE"} \
       --run-dir "$(state_dir "$name")" --resume $(all_episodes) "$@" && finish_state "$name"; }
 }
+if [[ $parts == *pruners* || $parts == *analysis* ]]; then need_steps; fi
 if [[ $parts == *pruners* ]]; then
   for which in ${PRUNERS:-omni prior forward timestep rollout}; do
     case $which in
