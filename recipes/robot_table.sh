@@ -2,11 +2,11 @@
 # The main rows of the robot table for TASK=lift (default) or can, from the bundled policy checkpoint
 # (checkpoints/<task>_dpt): dense-policy trajectories (collected if missing), dense DDPM-100, DDIM-7
 # (matched MACs), the BAC-style per-branch schedule and the whole-step schedule searched offline, the
-# TTS step-query pruner started from the searched steps (exact budget, 93%), its decisions vs its
-# prior, the per-call oracle headroom around the searched steps, latency at batch 1 and 28 against
-# dense in one process, the figures (docs/<task>_*.png); for Can also the steps searched on 256
-# calibration calls and the TTS pruners from them (robot_baselines.sh parts c256 c256tts c256ts); then
-# the tables. Every step is resumable and skipped when its output exists.
+# TTS step-query pruner started from the searched steps (exact budget, 93%; for Can the steps searched
+# on 256 calibration calls and the pruners from them: robot_baselines.sh parts c256 c256tts c256ts),
+# its decisions vs its prior, the per-call oracle headroom around the searched steps, latency at batch
+# 1 and 28 against dense in one process, the figures (docs/<task>_*.png); then the tables. Every step
+# is resumable and skipped when its output exists.
 # SEEDS: 6 test seeds for Can, 3 for Lift (x 50 episodes). About 1 h for Lift and 1.5 h for Can on
 # 2 CPU cores from scratch.
 set -euo pipefail
@@ -28,18 +28,17 @@ checks() {  # checks PRUNER_NAME: a table TTS pruner's held-out decisions vs its
       --checkpoint "$CKPT" --trajectories "$TRAJ" --pruner "$pruner" --sparsity 0.93
   latency "pruner:$pruner@0.93"
 }
-pruner=checkpoints/pruners/${TASK}_tts_0.93
-step_pruner "${pruner##*/}" "$steps" 0.93 --directions timestep,rollout
-checks "${pruner##*/}"
+if [ "$TASK" = can ]; then  # Can's TTS row: the steps searched on 256 calls, then the pruner from them
+  PARTS="c256 c256tts c256ts" bash "$(dirname "$0")/robot_baselines.sh"
+else
+  step_pruner "$TTS_PRUNER" "$steps" 0.93 --directions timestep,rollout
+fi
+checks "$TTS_PRUNER"
 headroom "$steps"
 latency "file:$steps"
 latency ddim:7
 [ -f "docs/${TASK}_pruning_masks.png" ] || python eval/figures.py masks --task "$TASK" --checkpoint "$CKPT" \
-    --trajectories "$TRAJ" --pruner "$pruner" --sparsity 0.93
+    --trajectories "$TRAJ" --pruner "checkpoints/pruners/$TTS_PRUNER" --sparsity 0.93
 [ -f "docs/${TASK}_feature_similarity.png" ] || python eval/figures.py similarity --task "$TASK" \
     --checkpoint "$CKPT" --trajectories "$TRAJ"
-if [ "$TASK" = can ]; then  # Can's TTS row: the steps searched on 256 calls, then the pruner from them
-  PARTS="c256 c256tts c256ts" bash "$(dirname "$0")/robot_baselines.sh"
-  checks "$TTS_PRUNER"
-fi
 python eval/tables.py
