@@ -474,21 +474,31 @@ def image_table(folder: Path) -> str:
     rows = ["| method | plan | decisions reused | MACs speed-up (pruner incl.) | FID | FID vs dense | sFID | "
             + "".join(f"wall-clock speed-up, batch {b} | " for b in batches) + "s/image (FID run) | git SHA |",
             "|---|---|---|---|---|---|---|" + "---|" * len(batches) + "---|---|"]
-    dense_fid = None
-    for r in image_runs(folder):
+    runs = image_runs(folder)
+    dense = next((r for r in runs if r["method"] == "dense"), None)
+    dense_fid = dense.get("fid") if dense else None
+    for r in runs:
         name = r["method"]
-        if name == "dense":
-            dense_fid = r.get("fid")
         rel = f"{100 * (r['fid'] / dense_fid - 1):+.1f}%" if dense_fid and "fid" in r and name != "dense" else "-"
         speed = "".join(
             ("1.00x | " if name == "dense" else
              f"{lat_rows[b]['methods'][name]['speedup']:.2f}x | " if name in lat_rows[b]["methods"] else "- | ")
             for b in batches)
         plan = r["plan"] + (f" + Taylor forecast O={_forecast_order(r)}" if _forecast_order(r) else "")
-        rows.append(f"| `{name}` | {plan} | {r['sparsity']:.3f} | {r['macs_ratio_with_pruner']:.2f}x | "
+        if dense and r["steps"] != dense["steps"]:
+            plan += f", {r['steps']} sampler steps"
+        rows.append(f"| `{name}` | {plan} | {r['sparsity']:.3f} | {_macs_speedup(r, dense):.2f}x | "
                     f"{r.get('fid', float('nan')):.2f} | {rel} | {r.get('sfid', float('nan')):.2f} | {speed}"
                     f"{r['s_per_image']:.4f} | `{r['provenance']['git_sha'][:10]}` |")
     return "\n".join(rows) + "\n"
+
+
+def _macs_speedup(r: dict, dense: dict | None) -> float:
+    """MACs of the dense run (all of its sampler steps) over those of run ``r``, its pruner included;
+    without a dense run, ``r``'s own ratio (against the model dense on ``r``'s sampler steps)."""
+    if dense is None:
+        return r["macs_ratio_with_pruner"]
+    return dense["macs_dense_per_image"] / max(r["macs_realised_per_image"] + r.get("macs_pruner_per_image", 0.0), 1.0)
 
 
 def _forecast_order(r: dict) -> int:
@@ -581,7 +591,6 @@ def headline_image(folder: Path) -> str:
     lat = json.loads(lat_path.read_text()) if lat_path.exists() else {"rows": []}
     batches = [row["batch"] for row in lat["rows"]]
     by = {r["method"]: r for r in image_runs(folder)}
-    dense_macs = by["dense"]["macs_dense_per_image"] if "dense" in by else float("nan")
     rows = ["| method | FID | MACs speed-up | " + " | ".join(f"wall-clock speed-up, batch {b}" for b in batches) + " |",
             "|---|---|---|" + "---|" * len(batches)]
     for name in HEADLINE_IMAGE:
@@ -591,8 +600,7 @@ def headline_image(folder: Path) -> str:
         speeds = " | ".join(("1.00x" if name == "dense" else
                              f"{row['methods'][name]['speedup']:.2f}x" if name in row["methods"] else "-")
                             for row in lat["rows"])
-        macs = dense_macs / max(r["macs_realised_per_image"] + r.get("macs_pruner_per_image", 0.0), 1.0)
-        rows.append(f"| `{name}` | {r.get('fid', float('nan')):.2f} | {macs:.2f}x | {speeds} |")
+        rows.append(f"| `{name}` | {r.get('fid', float('nan')):.2f} | {_macs_speedup(r, by.get('dense')):.2f}x | {speeds} |")
     return "\n".join(rows) + "\n"
 
 
