@@ -18,8 +18,12 @@
 #             some of "omni prior forward timestep rollout" (e.g. two at once with THREADS=1 each)
 #   analysis  the prior pruner's agreement with the prior on held-out episodes, the oracle headroom
 #             around the searched steps, the mask and rollout-feature-similarity figures
-# Every step is skipped when its output exists. ALL_EPISODES=1 uses every recorded episode, not only
-# the successful ones (Push-T). THREADS: torch threads of every step (default 2; 1 next to another job).
+# Every step is skipped when its output exists. The steps are searched on the successful recorded
+# episodes (ALL_EPISODES=1: on all of them, for Push-T, whose policy rarely succeeds); the rollout
+# ages, the pruners and the analysis take every recorded episode, as the reference runs its episodes
+# to the full horizon whatever their outcome (an MH-style policy fails some: of Lift's 112, 96
+# succeed, which would leave none to hold out). THREADS: torch threads of every step (default 2; 1
+# next to another job).
 # Then python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
@@ -50,23 +54,21 @@ if [[ $parts == *statics* ]]; then
     m=${m/file:STEPS/file:$steps}
     evaluate --method "${m/file:EARLY/file:$early}"
   done
-  # shellcheck disable=SC2046
   [ -n "${STATICS:-}" ] || [ -f "results/robot/rollout_age_${policy}.json" ] || { need_steps; python eval/rollout_age.py \
       --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
-      --methods uniform:0.93:rollout rotating:0.93:rollout "file:$early" $(all_episodes); }
+      --methods uniform:0.93:rollout rotating:0.93:rollout "file:$early" --all-episodes; }
 fi
 # The reference's sparsity weight (lam 1) balances an L1 on actions in [-1, 1] (robosuite's). Push-T's
 # actions are pixel targets (0-512), whose L1 is hundreds of times larger and would drown the sparsity
 # term, so its pruners take the L1 on the policy's normalised actions, which are in [-1, 1].
 loss_space=$([ "$TASK" = pusht ] && echo normalized || echo raw)
-# shellcheck disable=SC2046
 reference_pruner() {  # NAME DIRECTIONS [ARGS...]: the reference recipe on 96 train / 16 validation episodes
   local name=$1 dirs=$2; shift 2
   trained "$name" || { python eval/train_pruner.py --recipe reference --trajectories "$TRAJ" \
       --checkpoint "$CKPT" --out "checkpoints/pruners/$name" --directions "$dirs" --sparsity 0.93 \
       --n-train 96 --n-val 16 --precision "${PRECISION:-bfloat16}" --loss-space "$loss_space" \
       --threads "${THREADS:-2}" ${DEVICE:+--device "$DEVICE"} \
-      --run-dir "$(state_dir "$name")" --resume $(all_episodes) "$@" && finish_state "$name"; }
+      --run-dir "$(state_dir "$name")" --resume --all-episodes "$@" && finish_state "$name"; }
 }
 if [[ $parts == *pruners* || $parts == *analysis* ]]; then need_steps; fi
 if [[ $parts == *pruners* ]]; then
@@ -81,17 +83,14 @@ if [[ $parts == *pruners* ]]; then
   done
 fi
 if [[ $parts == *analysis* ]]; then
-  headroom "$steps"
-  # shellcheck disable=SC2046
+  ALL_EPISODES=1 headroom "$steps"
   [ -f "docs/${policy}_feature_similarity.png" ] || python eval/figures.py similarity --task "$TASK" \
-      --checkpoint "$CKPT" --trajectories "$TRAJ" $(all_episodes)
-  # shellcheck disable=SC2046
+      --checkpoint "$CKPT" --trajectories "$TRAJ" --all-episodes
   ! trained "$prior" || [ -f "results/robot/agreement_${TASK}_$prior.json" ] \
       || python eval/pruner_agreement.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
-      --pruner "checkpoints/pruners/$prior" $(all_episodes)
-  # shellcheck disable=SC2046
+      --pruner "checkpoints/pruners/$prior" --all-episodes
   ! trained "$omni" || [ -f "docs/${policy}_pruning_masks.png" ] \
       || python eval/figures.py masks --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
-      --pruner "checkpoints/pruners/$omni" $(all_episodes)
+      --pruner "checkpoints/pruners/$omni" --all-episodes
 fi
 python eval/tables.py
