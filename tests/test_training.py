@@ -108,10 +108,6 @@ def test_resume_after_an_interrupted_epoch_continues_from_the_saved_state(tmp_pa
         assert torch.equal(a, cut["pruner"][k]), k
     assert [h["val_score"] for h in whole["history"]] == [h["val_score"] for h in cut["history"]]
     assert [h["epoch"] for h in tts.load_pruner(tmp_path / "cut").metadata["history"]] == [1, 2, 3]
-    # the state leaves the best epoch's weights to the checkpoint, which holds them already
-    assert cut["best_state"] is None
-    best = tts.load_pruner(tmp_path / "cut")
-    assert cut["best"] == best.metadata["best_epoch"]
     # resuming a finished run trains nothing
     trained.clear()
     _toy_run(config("cut", resume=True), trained=trained)
@@ -142,18 +138,6 @@ def test_resume_inside_an_epoch_skips_the_trained_groups_and_matches_an_uninterr
     assert [h["val_score"] for h in whole["history"]] == [h["val_score"] for h in cut["history"]]
     assert [h["train_l1"] for h in whole["history"]] == [h["train_l1"] for h in cut["history"]]
     assert cut["partial"] is None
-
-
-def test_a_resumed_state_whose_best_epoch_the_checkpoint_lost_is_refused(tmp_path):
-    config = PrunerTrainingConfig(out=tmp_path / "p", run_dir=tmp_path / "run", directions="timestep",
-                                  sparsity=0.5, epochs=3, lr=0.05)
-    with pytest.raises(Interrupted):
-        _toy_run(config, interrupt_at_group=(2, 1))
-    assert torch.load(config.state_path, weights_only=False)["best_state"] is None
-    for f in tmp_path.glob("p.*"):
-        f.unlink()
-    with pytest.raises(ValueError, match="keeps its best epoch .* is missing"):
-        _toy_run(replace(config, resume=True))
 
 
 # ---------------------------------------------------------------- config and grids

@@ -34,7 +34,7 @@ import torch
 
 from .io import atomic_path
 from .plans import COMPUTE, DIRECTIONS, check_directions, check_sparsity, from_tensor
-from .pruner import PrunerModule, PrunerPlan, checkpoint_pair, save_pruner
+from .pruner import PrunerModule, PrunerPlan, save_pruner
 from .static_search import steps_grid
 
 __all__ = ["EpochProgress", "GridSource", "PRECISIONS", "PrunerTrainingConfig", "RecordingPlan", "fit", "mean_of", "read_grid", "training_finished"]
@@ -224,19 +224,6 @@ def _check_resume(state: dict, pruner: PrunerModule, config: PrunerTrainingConfi
         raise ValueError(f"{path} holds the training state of a different pruner: {e}") from None
 
 
-def _best_from_checkpoint(config: PrunerTrainingConfig, best: dict) -> dict:
-    """The best epoch's weights, which a saved state leaves to the checkpoint at ``config.out``."""
-    from safetensors.torch import load_file
-
-    weights, meta = checkpoint_pair(config.out)
-    saved = json.loads(meta.read_text()).get("metadata", {}).get("best_epoch") if meta.exists() else None
-    if not weights.exists() or saved is None or saved.get("epoch") != best["epoch"]:
-        raise ValueError(f"{config.state_path} keeps its best epoch ({best['epoch']}) in {weights}, which "
-                         f"{'is missing' if not weights.exists() else 'holds another epoch'}: restore that "
-                         "checkpoint with the state, or start the run again without resume")
-    return load_file(str(weights))
-
-
 class EpochProgress:
     """Where an epoch stands: ``skip`` groups already trained (their rows in ``rows``, from an
     interrupted run); ``done(rows)`` after each group saves a resumable state."""
@@ -283,8 +270,6 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         opt.load_state_dict(st["opt"])
         sched.load_state_dict(st["sched"])
         epoch, history, best, best_state = st["epoch"], st["history"], st["best"], st["best_state"]
-        if best_state is None and best is not None:
-            best_state = _best_from_checkpoint(config, best)
         say(f"resumed after epoch {epoch}")
 
     def score(row: dict) -> float:
@@ -301,9 +286,6 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         say(" ".join(f"{k}={x:.4g}" for k, x in row.items()))
         history.append(row)
         best, best_state = row, snapshot()
-    # whether config.out holds best_state already: the saved state then leaves it out (it would double
-    # the state's size) and a resumed run reads it back from the checkpoint
-    best_on_disk = st is not None and st["best_state"] is None
     rng = np.random.default_rng(config.seed)
     noise_rng = torch.Generator().manual_seed(config.seed + 1000)
     partial = st.get("partial") if st is not None else None
@@ -323,8 +305,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
     def save_state(done_epochs: int, mid: Optional[dict]) -> None:
         with atomic_path(state_path) as tmp:
             torch.save({"pruner": pruner.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                        "epoch": done_epochs, "history": history, "best": best,
-                        "best_state": None if best_on_disk else best_state,
+                        "epoch": done_epochs, "history": history, "best": best, "best_state": best_state,
                         "rng": (rng.bit_generator.state, noise_rng.get_state()), "torch_rng": torch.get_rng_state(),
                         "pruner_config": asdict(pruner.config), "config": config.to_json(), "partial": mid}, tmp)
 
@@ -357,7 +338,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         history.append(row)
         say(" ".join(f"{k}={x:.4g}" for k, x in row.items()))
         if best is None or row["val_score"] < best["val_score"]:
-            best, best_state, best_on_disk = row, snapshot(), False
+            best, best_state = row, snapshot()
         save_state(epoch + 1, None)
         # the best epoch's weights, with the history so far: a usable checkpoint after every epoch
         meta = dict(base, best_epoch=best, history=history, train_seconds=train_seconds,
@@ -365,7 +346,6 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         current = snapshot()
         pruner.load_state_dict(best_state)
         save_pruner(pruner, config.out, metadata=meta)
-        best_on_disk = True
         pruner.load_state_dict(current)
     pruner.load_state_dict(best_state)
     if meta is not None:
