@@ -11,7 +11,7 @@
 # pruner are made when its first run comes. Then the figure docs/frontier_digits.png and eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
-run() {  # run METHOD: one eval/imagenet.py run (2 processes), skipped when it has a FID interval
+run() {  # run METHOD: one eval/imagenet.py run (image_run.sh), skipped when it has a FID interval
   local slug json
   slug=$(python -c "import sys; sys.path.insert(0, 'eval'); from common.methods import parse_method; \
 print(parse_method(sys.argv[1]).slug)" "$1")

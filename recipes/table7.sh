@@ -21,9 +21,9 @@
 # Every step is skipped when its output exists. The steps are searched on the successful recorded
 # episodes (ALL_EPISODES=1: on all of them, for Push-T, whose policy rarely succeeds); the rollout
 # ages, the pruners and the analysis take every recorded episode, as the reference runs its episodes
-# to the full horizon whatever their outcome (an MH-style policy fails some: of Lift's 112, 96
-# succeed, which would leave none to hold out). THREADS: torch threads of every step (default 2; 1
-# next to another job).
+# to the full horizon whatever their outcome (an MH-style policy fails some episodes, and the
+# successful ones alone may leave none to hold out). THREADS: torch threads of every step (default
+# 2; 1 next to another job).
 # Then python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
