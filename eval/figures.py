@@ -9,6 +9,8 @@
     python eval/figures.py frontier --task lift [--checkpoint checkpoints/lift_mh_dpt]
                                                           # success vs speed-up per batch size (eval/frontier_latency.py)
     python eval/figures.py image-frontier                 # digits DiT: FID vs speed-up (eval/image_latency.py)
+    python eval/figures.py training-curves --task pusht --checkpoint checkpoints/pusht_mh_dpt_17k
+                                                          # reference-recipe pruners: validation per epoch
 
 Masks and similarities use held-out recorded episodes (index >= ``--first-episode``, past the
 pruner's training and validation sets) with the recorded noise seeds.
@@ -311,9 +313,65 @@ def image_frontier(args) -> Path:
     return out
 
 
+CURVE_LABELS = {"forward-timestep-rollout": "omni, from scratch", "prior": "omni, from the searched prior"}
+
+
+def training_curves_of(folder: Path, policy: str) -> tuple[dict[str, list[dict]], Optional[float], dict]:
+    """The per-epoch history of each reference-recipe pruner of ``policy`` in ``folder``
+    (``<policy>_reference_<what>_<rho>.json``; single directions are labelled by their name), the
+    validation L1 of the searched steps (epoch 0 of the pruner started from them, ``prior``, whose
+    argmax is their schedule; None without it) and the metadata of one of the trainings (one that
+    records the dense policy's validation L1, ``val_l1_dense``, where one does)."""
+    curves, searched, meta = {}, None, {}
+    for path in sorted(folder.glob(f"{policy}_reference_*.json")):
+        what = path.stem[len(f"{policy}_reference_"):].rsplit("_", 1)[0]
+        this = json.loads(path.read_text())["metadata"]
+        if "val_l1_dense" in this or "val_l1_dense" not in meta:
+            meta = this
+        hist = this["history"]
+        if what == "prior" and hist and hist[0]["epoch"] == 0:
+            searched = hist[0]["val_l1"]
+        curves[CURVE_LABELS.get(what, f"{what} only, from scratch")] = [h for h in hist if h["epoch"] > 0]
+    return curves, searched, meta
+
+
+def training_curves(args) -> Path:
+    """Validation action L1 and reuse fraction per epoch of the reference-recipe pruners of one
+    policy (test-time argmax decisions on the held-out validation episodes), the searched steps' L1 as
+    a dashed line."""
+    plt = _plt()
+    slug = policy_slug(args.task, args.checkpoint)
+    curves, searched, meta = training_curves_of(REPO / "checkpoints" / "pruners", slug)
+    if not curves:
+        raise SystemExit(f"no reference-recipe pruner of {slug} in checkpoints/pruners/ (recipes/table7.sh)")
+    fig, (ax_l1, ax_sp) = plt.subplots(1, 2, figsize=(10.5, 4.0))
+    for label, hist in sorted(curves.items()):
+        epochs = [h["epoch"] for h in hist]
+        ax_l1.plot(epochs, [h["val_l1"] for h in hist], "o-", ms=3, label=label)
+        ax_sp.plot(epochs, [h["val_sparsity"] for h in hist], "o-", ms=3, label=label)
+    if searched is not None:
+        ax_l1.axhline(searched, color="k", ls="--", lw=1, label="searched steps (the prior)")
+    if "val_l1_dense" in meta:
+        ax_l1.axhline(meta["val_l1_dense"], color="grey", ls=":", lw=1, label="dense, another noise draw")
+    ax_sp.axhline(meta["sparsity"], color="k", ls=":", lw=1, label=f"target {meta['sparsity']:g}")
+    ax_l1.set_ylabel(f"validation L1 to the dense action ({meta.get('loss_space', 'raw')} actions)")
+    ax_sp.set_ylabel("validation reuse fraction (argmax)")
+    for ax in (ax_l1, ax_sp):
+        ax.set_xlabel("epoch")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"{slug}: reference-recipe pruners on {meta.get('n_val_episodes', '?')} held-out episodes",
+                 fontsize=9)
+    fig.tight_layout()
+    out = DOCS / f"{slug}_pruner_training.png"
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("figure", choices=["masks", "similarity", "data-efficiency", "frontier", "image-frontier"])
+    ap.add_argument("figure", choices=["masks", "similarity", "data-efficiency", "frontier", "image-frontier",
+                                           "training-curves"])
     ap.add_argument("--task", help="the robot task (every figure but image-frontier)")
     ap.add_argument("--checkpoint", type=Path)
     ap.add_argument("--pruner", type=Path)
@@ -328,7 +386,7 @@ def main(argv=None) -> None:
         ap.error(f"{args.figure} needs --task")
     DOCS.mkdir(exist_ok=True)
     fn = {"masks": masks, "similarity": similarity, "data-efficiency": data_efficiency, "frontier": frontier,
-          "image-frontier": image_frontier}[args.figure]
+          "image-frontier": image_frontier, "training-curves": training_curves}[args.figure]
     print(f"wrote {fn(args)}")
 
 

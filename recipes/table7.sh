@@ -17,7 +17,8 @@
 #             an interruption. PRUNERS picks
 #             some of "omni prior forward timestep rollout" (e.g. two at once with THREADS=1 each)
 #   analysis  the prior pruner's agreement with the prior on held-out episodes, the oracle headroom
-#             around the searched steps, the mask and rollout-feature-similarity figures
+#             around the searched steps, the mask and rollout-feature-similarity figures, the
+#             pruners' training curves (also of trainings in progress)
 # Every step is skipped when its output exists. The steps are searched on the successful recorded
 # episodes (ALL_EPISODES=1: on all of them, for Push-T, whose policy rarely succeeds); the rollout
 # ages, the pruners and the analysis take every recorded episode, as the reference runs its episodes
@@ -89,6 +90,8 @@ if [[ $parts == *analysis* ]]; then
   ! trained "$prior" || [ -f "results/robot/agreement_${TASK}_$prior.json" ] \
       || python eval/pruner_agreement.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
       --pruner "checkpoints/pruners/$prior" --all-episodes
+  ! compgen -G "checkpoints/pruners/${policy}_reference_*.json" >/dev/null \
+      || python eval/figures.py training-curves --task "$TASK" --checkpoint "$CKPT"
   ! trained "$omni" || [ -f "docs/${policy}_pruning_masks.png" ] \
       || python eval/figures.py masks --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
       --pruner "checkpoints/pruners/$omni" --all-episodes

@@ -178,10 +178,10 @@ def test_pruner_training_table_shows_the_curve_of_a_training_in_progress(tmp_pat
     hist = [{"epoch": 0, "val_l1": 0.11, "val_sparsity": 0.93},
             {"epoch": 1, "train_l1": 0.2, "train_sparsity": 0.5, "val_l1": 0.09, "val_sparsity": 0.61}]
     (tmp_path / "pusht_reference_prior_0.93.json").write_text(json.dumps(
-        {"metadata": {"history": hist, "best_epoch": hist[1], "epochs": 20}}))
+        {"metadata": {"history": hist, "best_epoch": hist[1], "epochs": 20, "val_l1_dense": 0.05}}))
     (tmp_path / "lift_tts_0.93.json").write_text("{}")  # not a reference-recipe pruner: not read
     table = tables.pruner_training_table(tmp_path)
-    assert "| `pusht_reference_prior_0.93` | 1 of 20 | 1: 0.0900, 0.610 | 0.93 0.61 | 0.110 0.090 | - 0.50 |" in table
+    assert "| `pusht_reference_prior_0.93` | 1 of 20 | 1: 0.0900, 0.610 | 0.0500 | 0.93 0.61 | 0.110 0.090 | - 0.50 |" in table
 
 
 def test_visuomotor_table_joins_success_with_latency_and_the_encoder_share(tmp_path):
@@ -235,3 +235,22 @@ def test_robot_headline_takes_frontier_speed_ups_and_shows_the_sampler_each_spar
     steps = lines[3].split(" | ")
     assert steps[4] == "10.04x / 11.00x"  # the frontier's batch-1 and batch-28 speed-ups
     assert steps[6].startswith("`ddim:2`: -0.050 (")  # the most successful sampler at least as fast
+
+
+def test_training_curves_label_each_reference_pruner_and_take_the_searched_steps_from_the_prior_run(tmp_path):
+    from figures import training_curves_of
+
+    def write(name, hist):
+        (tmp_path / f"{name}.json").write_text(json.dumps({"metadata": {"history": hist, "sparsity": 0.93}}))
+    write("pusht-p_reference_prior_0.93", [{"epoch": 0, "val_l1": 0.11}, {"epoch": 1, "val_l1": 0.15}])
+    write("pusht-p_reference_forward-timestep-rollout_0.93", [{"epoch": 1, "val_l1": 0.2}, {"epoch": 2, "val_l1": 0.1}])
+    write("pusht-p_reference_timestep_0.93", [{"epoch": 1, "val_l1": 0.3}])
+    (tmp_path / "pusht-p_reference_rollout_0.93.json").write_text(json.dumps(
+        {"metadata": {"history": [], "sparsity": 0.93, "val_l1_dense": 0.05}}))
+    write("pusht-other_reference_rollout_0.93", [{"epoch": 1, "val_l1": 9.0}])  # another policy: not read
+    curves, searched, meta = training_curves_of(tmp_path, "pusht-p")
+    assert searched == 0.11 and meta["sparsity"] == 0.93 and meta["val_l1_dense"] == 0.05
+    assert {k: [h["epoch"] for h in v] for k, v in curves.items()} == {
+        "omni, from the searched prior": [1], "omni, from scratch": [1, 2], "timestep only, from scratch": [1],
+        "rollout only, from scratch": []}
+    assert training_curves_of(tmp_path, "lift")[:2] == ({}, None)

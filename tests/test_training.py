@@ -49,6 +49,21 @@ def test_train_policy_pruner_from_a_config_object_round_trips_through_the_checkp
     assert meta["directions"] == ["forward", "timestep", "rollout"] and meta["out"] == str(config.out)
 
 
+
+def test_validation_floor_is_the_val_l1_of_a_pruner_that_computes_everything(tmp_path):
+    """The checkpoint records the untouched policy's val L1 under the validation's own noise draws: a
+    pruner that never reuses (compute forced by its head bias, learning rate 0) scores exactly that,
+    and it is above zero because the target was drawn with other noise."""
+    pol = _toy_policy_and_trajectories(tmp_path, [3 + e % 2 for e in range(6)])
+    episodes, _ = load_trajectories(tmp_path / "traj.pt")
+    config = PolicyPrunerTrainingConfig(out=tmp_path / "never_reuses", sparsity=0.6, epochs=1, batch=2, n_train=4,
+                                        n_val=2, lr=0.0, weight_decay=0.0, hidden=16, head_bias=[1e4, 0, 0, 0],
+                                        run_dir=tmp_path / "run")
+    meta = train_policy_pruner(pol, episodes, config, log=None).metadata
+    (row,) = meta["history"]
+    assert row["val_sparsity"] == 0.0
+    assert meta["val_l1_dense"] == pytest.approx(row["val_l1"], rel=1e-6) and meta["val_l1_dense"] > 0
+
 # ---------------------------------------------------------------- the loop: resume and mismatches
 class Interrupted(Exception):
     pass

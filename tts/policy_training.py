@@ -32,7 +32,7 @@ from tqdm import tqdm
 from .plans import check_directions
 from .pruner import PrunerConfig, PrunerModule, PrunerPlan, build_pruner, distill_schedule, pruner_loss
 from .trajectories import episode_groups, lockstep_frames, obs_dict, replay_keys, split_episodes
-from .training import GridSource, PrunerTrainingConfig, RecordingPlan, fit, read_grid
+from .training import GridSource, PrunerTrainingConfig, RecordingPlan, fit, mean_of, read_grid
 
 __all__ = ["PolicyPrunerTrainingConfig", "build_policy_pruner", "train_policy_pruner"]
 
@@ -102,9 +102,10 @@ def _generators(frame, paired: bool, rng: torch.Generator) -> list[torch.Generat
     return [torch.Generator().manual_seed(int(s)) for s in seeds]
 
 
-def _run_group(policy, plan: PrunerPlan, group, config: PolicyPrunerTrainingConfig, rng: torch.Generator,
+def _run_group(policy, plan: Optional[PrunerPlan], group, config: PolicyPrunerTrainingConfig, rng: torch.Generator,
                opt=None) -> dict[str, float]:
-    """One episode group in lockstep; trains when ``opt`` is given. Returns weighted means."""
+    """One episode group in lockstep; trains when ``opt`` is given. Returns weighted means. ``plan``
+    None: the policy runs untouched (every branch computed, sparsity 0)."""
     policy.reset()
     normalized = config.loss_space == "normalized"  # every action dim on the same [-1, 1] scale
     sums = {"l1": 0.0, "sparsity": 0.0, "n": 0.0}
@@ -132,13 +133,22 @@ def _run_group(policy, plan: PrunerPlan, group, config: PolicyPrunerTrainingConf
             reuse = out["reuse"].detach()
         else:
             l1 = float(((pred - target).abs().reshape(len(w), -1).mean(1) * w).sum() / w.sum().clamp_min(1))
-            reuse = (plan.last_codes != 0).float().mean((1, 2)).to(w.device)
+            reuse = (torch.zeros_like(w) if plan is None
+                     else (plan.last_codes != 0).float().mean((1, 2)).to(w.device))
         n = float(w.sum())
         sums["l1"] += l1 * n
         sums["sparsity"] += float((reuse * w).sum())
         sums["n"] += n
     n = max(sums["n"], 1.0)
     return {"l1": sums["l1"] / n, "sparsity": sums["sparsity"] / n, "frames": sums["n"]}
+
+
+def _validation_rows(policy, plan: Optional[PrunerPlan], val: Sequence[dict],
+                     config: PolicyPrunerTrainingConfig) -> list[dict]:
+    """One validation pass over ``val`` under ``plan`` (None: the untouched policy), every group with
+    the same noise generator, so that passes of different plans draw the same noise."""
+    return [_run_group(policy, plan, g, config, torch.Generator().manual_seed(config.seed + 7), None)
+            for g in episode_groups(val, config.batch, None)]
 
 
 def train_policy_pruner(policy, episodes: Sequence[dict], config: PolicyPrunerTrainingConfig, *,
@@ -174,8 +184,7 @@ def train_policy_pruner(policy, episodes: Sequence[dict], config: PolicyPrunerTr
     def validate():
         plan = RecordingPlan(pruner, config.val_mode, config.sparsity)
         with accelerate(policy, directions, plan=plan, forecast=config.forecast):
-            return [_run_group(policy, plan, g, config, torch.Generator().manual_seed(config.seed + 7), None)
-                    for g in episode_groups(val, config.batch, None)]
+            return _validation_rows(policy, plan, val, config)
 
     def warm_start():
         windows = torch.as_tensor(np.concatenate([e["obs"] for e in train])).to(policy.device)
@@ -186,6 +195,8 @@ def train_policy_pruner(policy, episodes: Sequence[dict], config: PolicyPrunerTr
         return {"init_schedule_agreement": distill_schedule(pruner, memory, grid, batch=16, seed=config.seed)}
 
     meta = dict(metadata or {}, n_train_episodes=len(train), n_val_episodes=len(val))
+    if val:  # the untouched policy's val L1 (same noise draws): what another noise draw alone costs
+        meta["val_l1_dense"] = mean_of(_validation_rows(policy, None, val, config), "l1")
     fit(pruner, config, train_epoch=train_epoch, validate=validate, steps=policy.cfg.num_inference_steps,
         memory_tokens=1 + policy.cfg.n_obs_steps, metadata=meta,
         warm_start=warm_start if config.init_schedule is not None else None, log=log)
