@@ -344,11 +344,17 @@ def training_curves(args) -> Path:
     curves, searched, meta = training_curves_of(REPO / "checkpoints" / "pruners", slug)
     if not curves:
         raise SystemExit(f"no reference-recipe pruner of {slug} in checkpoints/pruners/ (recipes/table7.sh)")
-    fig, (ax_l1, ax_sp) = plt.subplots(1, 2, figsize=(10.5, 4.0))
+    fig, (ax_l1, ax_sp, ax_dir) = plt.subplots(1, 3, figsize=(15.5, 4.0))
     for label, hist in sorted(curves.items()):
         epochs = [h["epoch"] for h in hist]
         ax_l1.plot(epochs, [h["val_l1"] for h in hist], "o-", ms=3, label=label)
         ax_sp.plot(epochs, [h["val_sparsity"] for h in hist], "o-", ms=3, label=label)
+        if label.startswith("omni"):  # which direction the reuse decisions take (recorded since it was added)
+            for d, color in zip(("forward", "timestep", "rollout"), COLORS[1:]):
+                rows = [h for h in hist if f"val_reuse_{d}" in h]
+                ax_dir.plot([h["epoch"] for h in rows], [h[f"val_reuse_{d}"] for h in rows],
+                            "o" + ("-" if label.endswith("scratch") else "--"), ms=3, color=color,
+                            label=f"{d} ({label})")
     if searched is not None:
         ax_l1.axhline(searched, color="k", ls="--", lw=1, label="searched steps (the prior)")
     if "val_l1_dense" in meta:
@@ -356,7 +362,9 @@ def training_curves(args) -> Path:
     ax_sp.axhline(meta["sparsity"], color="k", ls=":", lw=1, label=f"target {meta['sparsity']:g}")
     ax_l1.set_ylabel(f"validation L1 to the dense action ({meta.get('loss_space', 'raw')} actions)")
     ax_sp.set_ylabel("validation reuse fraction (argmax)")
-    for ax in (ax_l1, ax_sp):
+    ax_dir.set_ylabel("share of the validation decisions")
+    ax_dir.set_title("omni pruners: reuse by direction", fontsize=9)
+    for ax in (ax_l1, ax_sp, ax_dir):
         ax.set_xlabel("epoch")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)

@@ -298,8 +298,9 @@ def pruner_training_table(folder: Path) -> str:
     """The training curves of the reference-recipe pruners (checkpoints/pruners/*_reference_*.json,
     written after every epoch, so a training in progress shows the epochs it has done), with the val L1
     of the untouched policy under the same noise draws (the floor a second noise draw sets)."""
-    rows = ["| pruner | epochs done | best epoch: val L1, val sparsity | val L1 of the dense policy | "
-            "val sparsity per epoch | val L1 per epoch | train sparsity per epoch |", "|---|---|---|---|---|---|---|"]
+    rows = ["| pruner | epochs done | best epoch: val L1, val sparsity | its reuse by direction (F / T / R) | "
+            "val L1 of the dense policy | val sparsity per epoch | val L1 per epoch | train sparsity per epoch |",
+            "|---|---|---|---|---|---|---|---|"]
     for path in sorted(folder.glob("*_reference_*.json")):
         meta = json.loads(path.read_text())["metadata"]
         hist, best = meta["history"], meta["best_epoch"]
@@ -307,8 +308,10 @@ def pruner_training_table(folder: Path) -> str:
         def series(key: str, digits: int) -> str:
             return " ".join(f"{h[key]:.{digits}f}" if key in h else "-" for h in hist)
         floor = f"{meta['val_l1_dense']:.4f}" if "val_l1_dense" in meta else "-"
+        mix = " / ".join(f"{best[f'val_reuse_{d}']:.2f}" if f"val_reuse_{d}" in best else "-"
+                         for d in ("forward", "timestep", "rollout"))
         rows.append(f"| `{path.stem}` | {hist[-1]['epoch']} of {meta['epochs']} | {best['epoch']}: "
-                    f"{best['val_l1']:.4f}, {best['val_sparsity']:.3f} | {floor} | {series('val_sparsity', 2)} | "
+                    f"{best['val_l1']:.4f}, {best['val_sparsity']:.3f} | {mix} | {floor} | {series('val_sparsity', 2)} | "
                     f"{series('val_l1', 3)} | {series('train_sparsity', 2)} |")
     if len(rows) == 2:
         return "No reference-recipe pruner has finished an epoch yet (recipes/table7.sh PARTS=pruners).\n"

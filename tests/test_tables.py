@@ -176,12 +176,14 @@ def test_pruner_training_table_shows_the_curve_of_a_training_in_progress(tmp_pat
 
     assert tables.pruner_training_table(tmp_path).startswith("No reference-recipe pruner")
     hist = [{"epoch": 0, "val_l1": 0.11, "val_sparsity": 0.93},
-            {"epoch": 1, "train_l1": 0.2, "train_sparsity": 0.5, "val_l1": 0.09, "val_sparsity": 0.61}]
+            {"epoch": 1, "train_l1": 0.2, "train_sparsity": 0.5, "val_l1": 0.09, "val_sparsity": 0.61,
+             "val_reuse_timestep": 0.5, "val_reuse_rollout": 0.11}]
     (tmp_path / "pusht_reference_prior_0.93.json").write_text(json.dumps(
         {"metadata": {"history": hist, "best_epoch": hist[1], "epochs": 20, "val_l1_dense": 0.05}}))
     (tmp_path / "lift_tts_0.93.json").write_text("{}")  # not a reference-recipe pruner: not read
     table = tables.pruner_training_table(tmp_path)
-    assert "| `pusht_reference_prior_0.93` | 1 of 20 | 1: 0.0900, 0.610 | 0.0500 | 0.93 0.61 | 0.110 0.090 | - 0.50 |" in table
+    assert ("| `pusht_reference_prior_0.93` | 1 of 20 | 1: 0.0900, 0.610 | - / 0.50 / 0.11 | 0.0500 | 0.93 0.61 | "
+            "0.110 0.090 | - 0.50 |") in table
 
 
 def test_visuomotor_table_joins_success_with_latency_and_the_encoder_share(tmp_path):

@@ -44,6 +44,10 @@ def test_train_policy_pruner_from_a_config_object_round_trips_through_the_checkp
     assert meta == pruner.metadata and meta["note"] == "from python"
     assert meta["n_train_episodes"] == 4 and meta["n_val_episodes"] == 2 and len(meta["history"]) == 2
     assert meta["best_epoch"] in meta["history"] and meta["pruner_macs_per_call"] > 0
+    for row in meta["history"]:  # validation splits the reuse decisions by direction
+        shares = [row[f"val_reuse_{d}"] for d in ("forward", "timestep", "rollout")]
+        assert min(shares) >= 0 and sum(shares) == pytest.approx(row["val_sparsity"], abs=1e-6)
+    assert max(meta["history"][-1][f"val_reuse_{d}"] for d in ("forward", "timestep", "rollout")) > 0
     # the checkpoint records the options it was trained with: the same config comes back from it
     assert PolicyPrunerTrainingConfig.from_dict(meta) == config
     assert meta["directions"] == ["forward", "timestep", "rollout"] and meta["out"] == str(config.out)

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .plans import check_directions
+from .plans import DIRECTIONS, check_directions
 from .pruner import PrunerConfig, PrunerModule, PrunerPlan, build_pruner, distill_schedule, pruner_loss
 from .trajectories import episode_groups, lockstep_frames, obs_dict, replay_keys, split_episodes
 from .training import GridSource, PrunerTrainingConfig, RecordingPlan, fit, mean_of, read_grid
@@ -109,6 +109,7 @@ def _run_group(policy, plan: Optional[PrunerPlan], group, config: PolicyPrunerTr
     policy.reset()
     normalized = config.loss_space == "normalized"  # every action dim on the same [-1, 1] scale
     sums = {"l1": 0.0, "sparsity": 0.0, "n": 0.0}
+    mix = {d: 0.0 for d in config.directions} if opt is None else {}  # validation: decisions per direction
     for frame in lockstep_frames(group, replay_keys(policy)):
         obs = obs_dict(policy, frame.data["obs"], frame.data)
         gen = _generators(frame, config.paired, rng)  # CPU generators: the same noise on every device
@@ -135,12 +136,16 @@ def _run_group(policy, plan: Optional[PrunerPlan], group, config: PolicyPrunerTr
             l1 = float(((pred - target).abs().reshape(len(w), -1).mean(1) * w).sum() / w.sum().clamp_min(1))
             reuse = (torch.zeros_like(w) if plan is None
                      else (plan.last_codes != 0).float().mean((1, 2)).to(w.device))
+            for d in mix if plan is not None else ():
+                share = (plan.last_codes == DIRECTIONS[d]).float().mean((1, 2)).to(w.device)
+                mix[d] += float((share * w).sum())
         n = float(w.sum())
         sums["l1"] += l1 * n
         sums["sparsity"] += float((reuse * w).sum())
         sums["n"] += n
     n = max(sums["n"], 1.0)
-    return {"l1": sums["l1"] / n, "sparsity": sums["sparsity"] / n, "frames": sums["n"]}
+    return {"l1": sums["l1"] / n, "sparsity": sums["sparsity"] / n, **{f"reuse_{d}": x / n for d, x in mix.items()},
+            "frames": sums["n"]}
 
 
 def _validation_rows(policy, plan: Optional[PrunerPlan], val: Sequence[dict],

@@ -6,7 +6,8 @@ training and one validation pass do depends on the backbone and is passed in as 
 (:mod:`tts.policy_training` does it for a Diffusion Policy, from recorded trajectories):
 
 - ``train_epoch(opt, rng, noise_rng, epoch, progress)`` -> rows ``{"l1", "sparsity", "frames"}``;
-- ``validate()`` -> the same rows, with test-time decisions (see :class:`RecordingPlan`).
+- ``validate()`` -> the same rows, with test-time decisions (see :class:`RecordingPlan`); any other
+  key of its rows (e.g. the share of each reuse direction) is averaged into the epoch's row as ``val_<key>``.
 
 ``train_epoch`` also gets an :class:`EpochProgress` as a fifth argument: a trainer that calls
 ``progress.done(rows)`` after each batch group makes the epoch resumable mid-way (the state is saved
@@ -202,6 +203,13 @@ def mean_of(rows: list[dict], key: str) -> float:
     return sum(r[key] * r["frames"] for r in rows) / max(n, 1)
 
 
+def _val_means(rows: list[dict]) -> dict[str, float]:
+    """``val_<key>``: the frame-weighted mean of every key of the validation rows (``l1``,
+    ``sparsity`` and whatever else the trainer reports, e.g. the share of each reuse direction)."""
+    keys = [k for k in (rows[0] if rows else {"l1": 0, "sparsity": 0}) if k != "frames"]
+    return {f"val_{k}": mean_of(rows, k) for k in keys}
+
+
 def _check_resume(state: dict, pruner: PrunerModule, config: PrunerTrainingConfig) -> None:
     path = config.state_path
     saved = state.get("pruner_config")
@@ -280,8 +288,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
 
     if epoch == 0 and not history and (warm_start is not None or config.prior is not None):
         row = {"epoch": 0, **(warm_start() if warm_start is not None else {})}
-        v = validate()
-        row.update({f"val_{k}": mean_of(v, k) for k in ("l1", "sparsity")})
+        row.update(_val_means(validate()))
         row["val_score"] = score(row)
         say(" ".join(f"{k}={x:.4g}" for k, x in row.items()))
         history.append(row)
@@ -330,7 +337,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         sched.step()
         v = validate()
         row = {"epoch": epoch + 1, **{f"train_{k}": mean_of(stats, k) for k in ("l1", "sparsity")},
-               **{f"val_{k}": mean_of(v, k) for k in ("l1", "sparsity")}, "lr": lr}
+               **_val_means(v), "lr": lr}
         row["val_score"] = score(row)
         train_seconds += time.time() - t_start
         t_start = time.time()
