@@ -352,6 +352,8 @@ def training_curves(args) -> Path:
         if label.startswith("omni"):  # which direction the reuse decisions take (recorded since it was added)
             for d, color in zip(("forward", "timestep", "rollout"), COLORS[1:]):
                 rows = [h for h in hist if f"val_reuse_{d}" in h]
+                if not rows:
+                    continue
                 ax_dir.plot([h["epoch"] for h in rows], [h[f"val_reuse_{d}"] for h in rows],
                             "o" + ("-" if label.endswith("scratch") else "--"), ms=3, color=color,
                             label=f"{d} ({label})")
@@ -360,6 +362,7 @@ def training_curves(args) -> Path:
     if "val_l1_dense" in meta:
         ax_l1.axhline(meta["val_l1_dense"], color="grey", ls=":", lw=1, label="dense, another noise draw")
     ax_sp.axhline(meta["sparsity"], color="k", ls=":", lw=1, label=f"target {meta['sparsity']:g}")
+    ax_l1.set_yscale("log")
     ax_l1.set_ylabel(f"validation L1 to the dense action ({meta.get('loss_space', 'raw')} actions)")
     ax_sp.set_ylabel("validation reuse fraction (argmax)")
     ax_dir.set_ylabel("share of the validation decisions")
