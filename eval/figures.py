@@ -379,6 +379,7 @@ def training_curves(args) -> Path:
     plt.close(fig)
     return out
 
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("figure", choices=["masks", "similarity", "data-efficiency", "frontier", "image-frontier",

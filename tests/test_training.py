@@ -53,7 +53,6 @@ def test_train_policy_pruner_from_a_config_object_round_trips_through_the_checkp
     assert meta["directions"] == ["forward", "timestep", "rollout"] and meta["out"] == str(config.out)
 
 
-
 def test_validation_floor_is_the_val_l1_of_a_pruner_that_computes_everything(tmp_path):
     """The checkpoint records the untouched policy's val L1 under the validation's own noise draws: a
     pruner that never reuses (compute forced by its head bias, learning rate 0) scores exactly that,
@@ -67,6 +66,7 @@ def test_validation_floor_is_the_val_l1_of_a_pruner_that_computes_everything(tmp
     (row,) = meta["history"]
     assert row["val_sparsity"] == 0.0
     assert meta["val_l1_dense"] == pytest.approx(row["val_l1"], rel=1e-6) and meta["val_l1_dense"] > 0
+
 
 # ---------------------------------------------------------------- the loop: resume and mismatches
 class Interrupted(Exception):
