@@ -101,6 +101,7 @@ def _basic_forward(
 
 
 def basic_block_spec(block: nn.Module) -> BlockSpec:
+    """The residual branches (attn1, attn2, ff) of a diffusers ``BasicTransformerBlock``."""
     nt = block.norm_type
     if nt not in _SUPPORTED:
         raise NotImplementedError(

@@ -50,6 +50,8 @@ class SinusoidalPosEmb(nn.Module):
 
 @dataclass(frozen=True)
 class DPTransformerConfig:
+    """Arguments of Diffusion Policy's ``TransformerForDiffusion`` (same names and defaults)."""
+
     input_dim: int
     output_dim: int
     horizon: int

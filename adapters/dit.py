@@ -38,11 +38,14 @@ __all__ = ["DiTConfig", "DiT", "DiTBlock", "DIT_CONFIGS", "dit_block_spec", "sav
 
 
 def modulate(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """adaLN modulation: ``x * (1 + scale) + shift`` per sample."""
     return x * (1 + scale.unsqueeze(1)) + shift.unsqueeze(1)
 
 
 @dataclass(frozen=True)
 class DiTConfig:
+    """Architecture of a DiT (the official DiT's arguments; presets in :data:`DIT_CONFIGS`)."""
+
     input_size: int = 32
     patch_size: int = 2
     in_channels: int = 4
@@ -82,6 +85,7 @@ class TimestepEmbedder(nn.Module):
 
     @staticmethod
     def timestep_embedding(t: torch.Tensor, dim: int, max_period: int = 10000) -> torch.Tensor:
+        """Sinusoidal embedding [N, dim] of the (possibly fractional) timesteps ``t`` [N]."""
         half = dim // 2
         freqs = torch.exp(-math.log(max_period) * torch.arange(half, dtype=torch.float32, device=t.device) / half)
         args = t[:, None].float() * freqs[None]
@@ -115,6 +119,8 @@ class LabelEmbedder(nn.Module):
 
 
 class DiTBlock(nn.Module):
+    """The official DiT block: adaLN-Zero modulated self-attention and MLP (timm ``Attention`` / ``Mlp``)."""
+
     def __init__(self, hidden_size: int, num_heads: int, mlp_ratio: float = 4.0):
         super().__init__()
         from timm.layers import Attention, Mlp
@@ -134,6 +140,8 @@ class DiTBlock(nn.Module):
 
 
 class FinalLayer(nn.Module):
+    """DiT's output layer: adaLN-modulated layer norm and a linear map to patches."""
+
     def __init__(self, hidden_size: int, patch_size: int, out_channels: int):
         super().__init__()
         self.norm_final = nn.LayerNorm(hidden_size, elementwise_affine=False, eps=1e-6)
@@ -208,6 +216,7 @@ class DiT(nn.Module):
             nn.init.zeros_(layer.bias)
 
     def unpatchify(self, x: torch.Tensor) -> torch.Tensor:
+        """Patch tokens [N, T, p*p*C] -> images [N, C, H, W]."""
         c, p = self.out_channels, self.patch_size
         h = w = int(x.shape[1] ** 0.5)
         x = x.reshape(x.shape[0], h, w, p, p, c)
@@ -416,7 +425,7 @@ def load_dit(path: Union[str, Path], config: Union[None, str, DiTConfig] = None,
 DIT_BETAS = {"num_train_timesteps": 1000, "beta_start": 1e-4, "beta_end": 0.02, "beta_schedule": "linear"}
 
 
-def dit_scheduler(kind: str = "ddim", steps: int = 50, learn_sigma: bool = False):
+def dit_scheduler(kind: str = "ddim", steps: int = 50, learn_sigma: bool = False) -> Any:
     """A diffusers scheduler with DiT's training schedule (linear betas 1e-4..0.02 over 1000 steps), epsilon
     prediction, no clipping, ``steps`` evenly strided timesteps (as DiT's respacing).
 
@@ -542,6 +551,7 @@ def _attention_probe(fn, block: nn.Module, *args: Any) -> tuple[torch.Tensor, to
 
 
 def dit_block_spec(block: nn.Module) -> BlockSpec:
+    """The residual branches (attn, mlp) of an official-layout DiT block."""
     return BlockSpec(
         family="DiT block (timm Attention/Mlp + adaLN)",
         branches=(BranchSpec("attn", "self_attn", ("attn", "norm1"), probe=_attention_probe),

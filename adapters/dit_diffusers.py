@@ -112,6 +112,7 @@ class DiffusersDiT(nn.Module):
 
     @classmethod
     def from_dit(cls, model: DiT) -> "DiffusersDiT":
+        """The same weights as a diffusers ``DiTTransformer2DModel``, wrapped."""
         return cls(to_diffusers(model), model.config)
 
     @classmethod
@@ -133,6 +134,7 @@ class DiffusersDiT(nn.Module):
 
     @property
     def pos_embed(self) -> torch.Tensor:
+        """The fixed 2-D position embedding."""
         return self.transformer.pos_embed.pos_embed
 
     @property

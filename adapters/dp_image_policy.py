@@ -55,6 +55,7 @@ class ImageEncoderConfig:
 
     @property
     def features(self) -> int:
+        """Width of the image features: keypoint features of every camera."""
         return len(self.cameras) * self.feature_dim
 
 
@@ -195,4 +196,5 @@ class DiffusionTransformerHybridImagePolicy(DiffusionTransformerLowdimPolicy):
         return nn.functional.mse_loss(self.model(noisy, t, cond), noise)
 
     def config_dict(self) -> dict:
+        """The image encoder's options, for the checkpoint."""
         return {"image_encoder": asdict(self.image_cfg)}

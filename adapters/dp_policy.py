@@ -43,6 +43,7 @@ class Normalizer(nn.Module):
 
     @torch.no_grad()
     def fit(self, data: torch.Tensor, range_eps: float = 1e-4) -> "Normalizer":
+        """Fit a per-dimension min-max map of ``data`` [..., D] onto [-1, 1]; returns self."""
         x = data.reshape(-1, data.shape[-1]).double()
         lo, hi = x.min(0).values, x.max(0).values
         rng = hi - lo
@@ -56,14 +57,18 @@ class Normalizer(nn.Module):
         return self
 
     def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        """Raw values -> [-1, 1]."""
         return x * self.scale + self.offset
 
     def unnormalize(self, y: torch.Tensor) -> torch.Tensor:
+        """[-1, 1] -> raw values."""
         return (y - self.offset) / self.scale
 
 
 @dataclass
 class PolicyConfig:
+    """A low-dim policy: the transformer's arguments, observation keys and sizes, horizons, sampler."""
+
     model: dict
     obs_keys: Sequence[str]
     obs_dims: Sequence[int]
@@ -119,6 +124,7 @@ class DiffusionTransformerLowdimPolicy(nn.Module):
 
     @property
     def device(self) -> torch.device:
+        """The device of the policy's weights."""
         return self.model.pos_emb.device
 
     def set_sampler(self, scheduler: Optional[str] = None, steps: Optional[int] = None,

@@ -101,6 +101,7 @@ _FF = ("linear1", "linear2", "dropout", "dropout3")
 
 
 def decoder_layer_spec(layer: nn.TransformerDecoderLayer) -> BlockSpec:
+    """The residual branches (self_attn, cross_attn, ff) of an ``nn.TransformerDecoderLayer``, pre- or post-norm."""
     pre = layer.norm_first
     return BlockSpec(
         family="torch.nn.TransformerDecoderLayer",
@@ -116,6 +117,7 @@ def decoder_layer_spec(layer: nn.TransformerDecoderLayer) -> BlockSpec:
 
 
 def encoder_layer_spec(layer: nn.TransformerEncoderLayer) -> BlockSpec:
+    """The residual branches (self_attn, ff) of an ``nn.TransformerEncoderLayer``, pre- or post-norm."""
     pre = layer.norm_first
     return BlockSpec(
         family="torch.nn.TransformerEncoderLayer",

@@ -3,8 +3,8 @@
 source "$(dirname "${BASH_SOURCE[0]}")/../scripts/env.sh"
 
 # state_dir NAME: where a recipe's long training keeps its resumable state (optimizer, step, RNGs).
-# It is tracked, not ignored: a new checkout of the repository has no ignored files, so the state of a
-# training cut off by the end of a session survives only if it is committed. Commit it when you stop;
+# It is tracked, not ignored: a new checkout of the repository has no ignored files, so the state of an
+# interrupted training survives on another checkout only if it is committed. Commit it when you stop;
 # each recipe deletes it (finish_state) once its training has finished.
 state_dir() { echo "checkpoints/in_progress/$1"; }
 

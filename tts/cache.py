@@ -94,6 +94,7 @@ class TaylorSlot:
         return out
 
     def forecast(self, step: int) -> torch.Tensor:
+        """The slot's value at ``step``: the last output, plus the Taylor terms when derivatives are kept."""
         base = self.derivs[0]
         if len(self.derivs) == 1:
             return base
@@ -111,6 +112,8 @@ class TaylorSlot:
 
 
 class ReuseCache:
+    """The forward, timestep and rollout caches of one accelerated model (semantics: module docstring)."""
+
     def __init__(self, kind_of_branch: Sequence[int], num_kinds: int, directions: Sequence[str],
                  forecast: int = 0, batch_dims: Optional[Sequence[int]] = None):
         if int(forecast) < 0:
@@ -151,6 +154,7 @@ class ReuseCache:
 
     # -- reads -----------------------------------------------------------------------------------
     def read(self, code: int, b: int, k: int) -> Optional[torch.Tensor]:
+        """What branch ``b`` reuses at step ``k`` under decision ``code``; None when that cache is empty."""
         if code == FORWARD:
             return self.forward[self.kind_of_branch[b]]
         if code == TIMESTEP:

@@ -53,6 +53,7 @@ class BranchLayout:
 
     @classmethod
     def from_sites(cls, sites: Sequence[tuple[str, nn.Module, BlockSpec]]) -> "BranchLayout":
+        """The layout of every branch of ``sites`` (name, module, spec), in execution order."""
         layout = cls([], [], [], [], 0, [], [], [])
         kinds: list[str] = []
         for name, module, spec in sites:

@@ -39,6 +39,7 @@ def _rule_for(module: nn.Module) -> Optional[MacRule]:
 
 
 def module_macs(module: nn.Module, args: tuple, kwargs: dict, output: Any) -> int:
+    """MACs of one call of ``module`` (from its inputs and output); 0 for modules without a rule."""
     rule = _rule_for(module)
     return 0 if rule is None else int(rule(module, args, kwargs, output))
 
@@ -123,6 +124,7 @@ class MacProfiler:
 
     @property
     def total(self) -> int:
+        """MACs counted over every module."""
         return sum(self.totals.values())
 
 

@@ -23,6 +23,7 @@ class Patches:
         self._items: list[tuple[Any, str, Any]] = []
 
     def patch(self, obj: Any, name: str, make: Callable[[Callable], Callable]) -> None:
+        """Set ``obj.name = make(original)``; an error if another accelerator owns ``obj``."""
         holder = _OWNED.get(obj)
         if holder is not None and holder is not self._owner:
             raise RuntimeError(
@@ -37,6 +38,7 @@ class Patches:
         _OWNED[obj] = self._owner
 
     def restore(self) -> None:
+        """Undo every patch, newest first: each object is exactly as before."""
         for obj, name, saved in reversed(self._items):
             if saved is _MISSING:
                 object.__delattr__(obj, name)

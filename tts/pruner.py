@@ -40,6 +40,8 @@ __all__ = ["PrunerConfig", "Pruner", "StaticRouter", "build_pruner", "PrunerPlan
 
 @dataclass
 class PrunerConfig:
+    """Shape and options of a pruner: the policy's branches and steps, the reuse directions, the width."""
+
     memory_dim: int  # D of the condition memory
     num_branches: int  # nb: prunable branches per denoising step
     directions: tuple[str, ...] = ("forward", "timestep", "rollout")
@@ -152,6 +154,9 @@ class _QueryDecoderLayer(nn.Module):
 
 
 class Pruner(nn.Module):
+    """The learned pruner: one query per branch cross-attends to the condition memory of each step and
+    a head gives logits over compute and the reuse directions (the paper's transformer decoder)."""
+
     def __init__(self, config: PrunerConfig):
         super().__init__()
         self.config = config
@@ -266,7 +271,8 @@ class StaticRouter(nn.Module):
         return self.logits[None].expand(B, -1, -1, -1)
 
     def macs(self, steps: int, memory_tokens: int) -> float:
-        return 0.0  # a table lookup
+        """0: a table lookup."""
+        return 0.0
 
 
 def build_pruner(config: PrunerConfig) -> nn.Module:
@@ -476,6 +482,8 @@ def save_pruner(pruner: PrunerModule, path: Path, metadata: Optional[dict] = Non
 
 
 def load_pruner(path: Path) -> PrunerModule:
+    """A pruner saved by :func:`save_pruner` (``<path>.safetensors`` + ``<path>.json``), in eval mode,
+    its checkpoint metadata in ``.metadata``."""
     from safetensors.torch import load_file
 
     weights, meta = checkpoint_pair(path)

@@ -138,6 +138,7 @@ class PrunerTrainingConfig:
 
     @property
     def state_path(self) -> Path:
+        """Where the resumable training state is saved: ``<run_dir>/pruner_state.pt``."""
         return (self.run_dir or Path("runs") / self.out.name) / "pruner_state.pt"
 
     def to_json(self) -> dict[str, Any]:
@@ -145,7 +146,7 @@ class PrunerTrainingConfig:
         return {f.name: _jsonable(getattr(self, f.name)) for f in fields(self)}
 
     @classmethod
-    def from_dict(cls, options: Mapping[str, Any]):
+    def from_dict(cls, options: Mapping[str, Any]) -> "PrunerTrainingConfig":
         """A config from the options in ``options`` (other keys are ignored: e.g. a checkpoint's
         metadata, or ``vars()`` of parsed command-line arguments)."""
         return cls(**{f.name: options[f.name] for f in fields(cls) if f.name in options})
@@ -240,6 +241,7 @@ class EpochProgress:
         self.skip, self.rows, self._save = skip, list(rows or []), save
 
     def done(self, rows: list) -> None:
+        """Record that the groups in ``rows`` are trained (saves the resumable state)."""
         if self._save is not None:
             self._save(rows)
 

@@ -32,6 +32,8 @@ REPLAY_KEYS = ("obs", "action_pred", "noise_seed")  # the per-call arrays a repl
 
 @dataclass
 class Frame:
+    """One policy call of an episode group in lockstep (:func:`lockstep_frames`)."""
+
     index: int  # r: frame (policy call) index within the episodes
     data: dict[str, torch.Tensor]  # each [E, ...]
     weight: torch.Tensor  # [E]: 1 for real frames, 0 for padding after an episode ended
@@ -106,6 +108,7 @@ class Windows:
         return len(self.windows)
 
     def obs(self, idx: np.ndarray) -> dict[str, np.ndarray]:
+        """The policy's observation dict for the calls ``idx``."""
         return obs_dict(self.policy, torch.as_tensor(self.windows[idx]), {k: v[idx] for k, v in self.frames.items()})
 
 
