@@ -12,8 +12,7 @@
 #             episodes, unpaired noise), from scratch for each direction set (forward / timestep /
 #             rollout / all three) and, for all three, from the searched prior; the pruner's
 #             forward/backward in bfloat16 autocast (PRECISION=float32 for full precision). A
-#             reference-length training is hours on 2 CPU cores (the device machine of a session, when
-#             lent, is the place for it: DEVICE=cuda); each resumes from its state_dir (recipes/lib.sh) after
+#             reference-length training is hours on 2 CPU cores (on a GPU, DEVICE=cuda); each resumes from its state_dir (recipes/lib.sh) after
 #             an interruption. PRUNERS picks
 #             some of "omni prior forward timestep rollout" (e.g. two at once with THREADS=1 each)
 #   analysis  the prior pruner's agreement with the prior on held-out episodes, the oracle headroom
