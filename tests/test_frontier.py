@@ -161,3 +161,33 @@ def test_image_frontier_lower_fid_is_better_and_the_verdict_is_conservative(tmp_
     table = tables.image_frontier_table(tmp_path)
     assert "`every_n:2:timestep` | 50 | 45.00 [43.00, 47.00]" in table and table.count("**beats it**") == 1
     assert frontier.image_frontier_points(tmp_path, latency, 1) == []
+
+
+def test_image_headline_holds_each_sparse_row_against_the_best_ddim_as_fast(tmp_path):
+    """README image table: speed-ups from the frontier's latencies (they replace latency.json's), the
+    sampler a headline sparse row is held against shown as a row of its own, and the verdict column."""
+    import tables
+
+    def run(method, fid, lo, hi, steps=50):
+        (tmp_path / f"digits_{method.replace(':', '-')}.json").write_text(json.dumps(
+            {"method": method, "fid": fid, "fid_interval": [lo, hi], "num_samples": 2000, "steps": steps,
+             "macs_dense_per_image": 100.0 * steps, "macs_realised_per_image": 100.0 * steps / 5,
+             "macs_pruner_per_image": 0.0}))
+
+    run("dense", 40.0, 38.0, 42.0)
+    run("ddim:10", 60.0, 57.0, 63.0, steps=10)
+    run("ddim:8", 65.0, 62.0, 68.0, steps=8)
+    run("every_n:5:timestep", 90.0, 87.0, 93.0)  # as fast as ddim:8 only: held against it, and loses
+    run("file:digits_steps_0.8+taylor2", 43.0, 41.0, 45.0)  # as fast as ddim:10, and beats it
+    (tmp_path / "latency.json").write_text(json.dumps({"rows": [
+        {"batch": 1, "dense_ms": 100.0, "methods": {"every_n:5:timestep": {"speedup": 9.9}}}]}))
+    speed = {"ddim:10": 5.0, "ddim:8": 6.0, "every_n:5:timestep": 6.0, "file:digits_steps_0.8+taylor2": 4.9}
+    (tmp_path / "frontier_latency.json").write_text(json.dumps({"rows": [{"batch": b, "dense_ms": 100.0, "methods": {
+        m: {"ms": 100.0 / s, "speedup": s * b} for m, s in speed.items()}} for b in (1, 16)]}))
+    lines = tables.headline_image(tmp_path).strip().splitlines()
+    assert lines[0].endswith("| wall-clock speed-up, batch 1 | wall-clock speed-up, batch 16 "
+                             "| FID minus the best DDIM-k as fast, batch 1 (95% CI) |")
+    names = [line.split("`")[1] for line in lines[2:]]
+    assert names == ["dense", "ddim:10", "ddim:8", "every_n:5:timestep", "file:digits_steps_0.8+taylor2"]
+    assert "| `every_n:5:timestep` | 90.00 | 5.00x | 6.00x | 96.00x | `ddim:8`: +25.00 (+19.00, +31.00) |" in lines
+    assert lines[-1].endswith("| 4.90x | 78.40x | `ddim:10`: -17.00 (-22.00, -12.00) **beats it** |")
