@@ -4,7 +4,7 @@
 # (eval/image_latency.py, batch 1 and 16). Methods: DDIM-k (k = 5 8 10 15 20; dense is k = 50); on the
 # 50-step base FORA (every_n:N, N = 2 3 5), TaylorSeer (N = 3 5, order 2), ToCa and DuCa (RHO 0.6,
 # 0.8), the searched steps and the TTS step pruner (order-2 forecasting) served at RHO 0.6-0.9; on the
-# 20-step base (+ddim:20) FORA (N = 2 3), TaylorSeer (N = 3), ToCa (0.6), the searched steps at RHO 0.5
+# 20-step base (+ddim:20) FORA (N = 2 3), TaylorSeer (N = 3), ToCa and DuCa (0.6), the searched steps at RHO 0.5
 # and the TTS step pruner trained on them. A run is skipped when its JSON has a FID interval (older runs
 # without one are redone). About 7 min per FID run on 2 quiet CPU cores, hours in all; PARTS=runs,latency
 # picks stages; NPROC=1 samples in one process (next to another job). The 20-step base's schedule and
@@ -35,13 +35,16 @@ base20() {  # the 20-step base's searched steps and the step pruner trained on t
       --train-budget --prior-margin 0.5 --lr 3e-3 --val-mode budget --n-train 128 --n-val 32 --epochs 3 \
       --threads 2 --run-dir "$(state_dir "$pruner20")" --resume && finish_state "$pruner20"; }
 }
+# most telling first, so that a cut-off run still has the TTS points: the samplers, the sparse methods at
+# 80% reuse on the 50-step base, the TTS step pruner at other budgets, the 20-step base, then the rest
 methods=(dense)
 for k in 5 8 10 15 20; do methods+=("ddim:$k"); done
 for n in 2 3 5; do methods+=("every_n:$n:timestep"); done
-methods+=(taylorseer:3:2 taylorseer:5:2 toca:6@0.6 toca:6@0.8 duca:6@0.6 duca:6@0.8 "file:$steps50+taylor2")
-for rho in 0.6 0.7 0.8 0.9; do methods+=("pruner:$pruner50@$rho+taylor2"); done
-methods+=(every_n:2:timestep+ddim:20 every_n:3:timestep+ddim:20 taylorseer:3:2+ddim:20 toca:6@0.6+ddim:20
-          "file:$steps20+taylor2+ddim:20" "pruner:checkpoints/pruners/$pruner20@0.5+taylor2+ddim:20")
+methods+=(taylorseer:3:2 taylorseer:5:2 "file:$steps50+taylor2")
+for rho in 0.8 0.9 0.7 0.6; do methods+=("pruner:$pruner50@$rho+taylor2"); done
+methods+=("file:$steps20+taylor2+ddim:20" "pruner:checkpoints/pruners/$pruner20@0.5+taylor2+ddim:20"
+          toca:6@0.8 duca:6@0.8 every_n:2:timestep+ddim:20 taylorseer:3:2+ddim:20 toca:6@0.6 duca:6@0.6
+          every_n:3:timestep+ddim:20 toca:6@0.6+ddim:20 duca:6@0.6+ddim:20)
 parts=${PARTS:-runs,latency}
 if [[ $parts == *runs* ]]; then
   for m in "${methods[@]}"; do
