@@ -276,8 +276,8 @@ def frontier(args) -> Path:
 
 def image_frontier(args) -> Path:
     """The digits DiT: FID (bootstrap 95% interval) against speed-up over dense DDIM-50, one panel per
-    batch size of results/image/frontier_latency.json; DDIM-k as a line, every other method a point
-    (filled: the 50-step base; open: a shorter base, ``+ddim:K``)."""
+    batch size of results/image/frontier_latency.json; DDIM-k and DPM-Solver++-k as lines, every other
+    method a point (filled: the 50-step base; open: a shorter base, ``+ddim:K``)."""
     plt = _plt()
     folder = REPO / "results" / "image"
     latency = folder / "frontier_latency.json"
@@ -285,14 +285,16 @@ def image_frontier(args) -> Path:
     fig, panels = _frontier_panels(plt, batches, lambda b: frontier_join.image_frontier_points(folder, latency, b),
                                    "digits DiT")
     for ax, batch, points in panels:
-        line = sorted((p for p in points if p.family in ("ddim", "dense")), key=lambda p: p.speedup)
-        ax.plot([p.speedup for p in line], [p.score for p in line], "-o", color=FAMILY_STYLE["ddim"][0], ms=4,
-                label="DDIM-k (dense: k = 50)")
-        for p in line:
-            ax.annotate(str(p.computed_steps), (p.speedup, p.score), fontsize=7, color=FAMILY_STYLE["ddim"][0],
-                        xytext=(3, 3), textcoords="offset points")
+        for families, (color, label) in ((("ddim", "dense"), (FAMILY_STYLE["ddim"][0], "DDIM-k (dense: k = 50)")),
+                                         (("dpm",), FAMILY_STYLE["dpm"])):
+            line = sorted((p for p in points if p.family in families), key=lambda p: p.speedup)
+            if line:
+                ax.plot([p.speedup for p in line], [p.score for p in line], "-o", color=color, ms=4, label=label)
+            for p in line:
+                ax.annotate(str(p.computed_steps), (p.speedup, p.score), fontsize=7, color=color,
+                            xytext=(3, 3), textcoords="offset points")
         for p in points:
-            if p.family in ("ddim", "dense"):
+            if p.family in ("ddim", "dpm", "dense"):
                 continue
             shorter = "+ddim:" in p.method or "+dpm:" in p.method
             # the basic-bootstrap interval may lie wholly below the 2000-sample FID: a bar, not error bars

@@ -590,10 +590,10 @@ def headline_robot(folder: Path) -> str:
 
 def headline_image(folder: Path) -> str:
     """README: FID and wall-clock speed-up of the main image rows, with DDIM-10 (the compute of 80% reuse)
-    and, for each sparse row, the best DDIM-k at least as fast and the FID difference to it (the frontier's
-    conservative interval, batch 1). Speed-ups come from the frontier's one-process latencies where they
-    exist, else from latency.json (the full tables: docs/results/image.md). MACs are against the dense
-    50-step run, also for a run on fewer steps."""
+    and, for each sparse row, the best fewer-step sampler (DDIM-k, DPM-Solver++-k) at least as fast and
+    the FID difference to it (the frontier's conservative interval, batch 1). Speed-ups come from the
+    frontier's one-process latencies where they exist, else from latency.json (the full tables:
+    docs/results/image.md). MACs are against the dense 50-step run, also for a run on fewer steps."""
     speed: dict[str, dict[int, float]] = {}
     lat_path = folder / "latency.json"
     for row in json.loads(lat_path.read_text())["rows"] if lat_path.exists() else []:
@@ -613,7 +613,7 @@ def headline_image(folder: Path) -> str:
         if vs is not None and vs[0].method not in HEADLINE_IMAGE + tuple(rivals):
             rivals.append(vs[0].method)
     at = HEADLINE_IMAGE.index("ddim:10") + 1
-    versus_head = " | FID minus the best DDIM-k as fast, batch 1 (95% CI)" if points else ""
+    versus_head = " | FID minus the best fewer-step sampler as fast, batch 1 (95% CI)" if points else ""
     rows = ["| method | FID | MACs speed-up | " + " | ".join(f"wall-clock speed-up, batch {b}" for b in batches)
             + versus_head + " |", "|---|---|---|" + "---|" * (len(batches) + bool(points))]
     for name in HEADLINE_IMAGE[:at] + tuple(rivals) + HEADLINE_IMAGE[at:]:

@@ -1,14 +1,15 @@
 #!/usr/bin/env bash
 # The image frontier on the bundled digits DiT: FID (2000 samples, with its bootstrap 95% interval) and
 # sFID against sampling latency, every method timed against dense DDIM-50 in one process
-# (eval/image_latency.py, batch 1 and 16). Methods: DDIM-k (k = 5 8 10 15 20; dense is k = 50); on the
-# 50-step base FORA (every_n:N, N = 2 3 5), TaylorSeer (N = 3 5, order 2), ToCa and DuCa (RHO 0.6,
-# 0.8), the searched steps and the TTS step pruner (order-2 forecasting) served at RHO 0.6-0.9; on the
-# 20-step base (+ddim:20) FORA (N = 2 3), TaylorSeer (N = 3), ToCa and DuCa (0.6), the searched steps at RHO 0.5
-# and the TTS step pruner trained on them. A run is skipped when its JSON has a FID interval (older runs
-# without one are redone). About 7 min per FID run on 2 quiet CPU cores, hours in all; PARTS=runs,latency
-# picks stages; NPROC=1 samples in one process (next to another job). The 20-step base's schedule and
-# pruner are made when its first run comes. Then the figure docs/frontier_digits.png and eval/tables.py
+# (eval/image_latency.py, batch 1 and 16). Fewer-step samplers: DDIM-k and DPM-Solver++-k (k = 5 8 10 15
+# 20). On the 50-step base: FORA (every_n:N, N = 2 3 5), TaylorSeer (N = 3 5, order 2), ToCa and DuCa
+# (RHO 0.6, 0.8), the searched steps and the TTS step pruner (order-2 forecasting) served at RHO 0.6-0.9.
+# On the 20-step base (+ddim:20): FORA (N = 2 3), TaylorSeer (N = 3), ToCa and DuCa (0.6), the searched
+# steps at RHO 0.5 and the TTS step pruner trained on them. A run is skipped when its JSON has a FID
+# interval (older runs without one are redone). About 5-10 min per FID run on 2 quiet CPU cores (4-5 of
+# them the Inception pass), hours in all; PARTS=runs,latency picks stages; NPROC=1 samples in one process
+# (next to another job). The 20-step base's schedule and pruner are made when its first run comes. Then
+# the figure docs/frontier_digits.png and eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
 run() {  # run METHOD: one eval/imagenet.py run (image_run.sh), skipped when it has a FID interval
@@ -39,6 +40,7 @@ base20() {  # the 20-step base's searched steps and the step pruner trained on t
 # 80% reuse on the 50-step base, the TTS step pruner at other budgets, the 20-step base, then the rest
 methods=(dense)
 for k in 5 8 10 15 20; do methods+=("ddim:$k"); done
+for k in 10 15 8 20 5; do methods+=("dpm:$k"); done
 for n in 2 3 5; do methods+=("every_n:$n:timestep"); done
 methods+=(taylorseer:3:2 taylorseer:5:2 "file:$steps50+taylor2")
 for rho in 0.8 0.9 0.7 0.6; do methods+=("pruner:$pruner50@$rho+taylor2"); done

@@ -186,7 +186,7 @@ def test_image_headline_holds_each_sparse_row_against_the_best_ddim_as_fast(tmp_
         m: {"ms": 100.0 / s, "speedup": s * b} for m, s in speed.items()}} for b in (1, 16)]}))
     lines = tables.headline_image(tmp_path).strip().splitlines()
     assert lines[0].endswith("| wall-clock speed-up, batch 1 | wall-clock speed-up, batch 16 "
-                             "| FID minus the best DDIM-k as fast, batch 1 (95% CI) |")
+                             "| FID minus the best fewer-step sampler as fast, batch 1 (95% CI) |")
     names = [line.split("`")[1] for line in lines[2:]]
     assert names == ["dense", "ddim:10", "ddim:8", "every_n:5:timestep", "file:digits_steps_0.8+taylor2"]
     assert "| `every_n:5:timestep` | 90.00 | 5.00x | 6.00x | 96.00x | `ddim:8`: +25.00 (+19.00, +31.00) |" in lines
@@ -200,11 +200,13 @@ def test_image_frontier_figure_draws_intervals_that_lie_below_the_fid(tmp_path, 
 
     folder = tmp_path / "results" / "image"
     folder.mkdir(parents=True)
-    for method, fid, steps in (("dense", 42.5, 50), ("ddim:10", 51.6, 10), ("every_n:2:timestep", 45.2, 50)):
+    for method, fid, steps in (("dense", 42.5, 50), ("ddim:10", 51.6, 10), ("dpm:10", 47.0, 10),
+                               ("every_n:2:timestep", 45.2, 50)):
         (folder / f"digits_{method.replace(':', '-')}.json").write_text(json.dumps(
             {"method": method, "fid": fid, "fid_interval": [fid - 3.4, fid - 1.1], "num_samples": 2000, "steps": steps}))
     (folder / "frontier_latency.json").write_text(json.dumps({"rows": [{"batch": 1, "dense_ms": 100.0, "methods": {
-        "ddim:10": {"ms": 20.0, "speedup": 5.0}, "every_n:2:timestep": {"ms": 50.0, "speedup": 2.0}}}]}))
+        "ddim:10": {"ms": 20.0, "speedup": 5.0}, "dpm:10": {"ms": 21.0, "speedup": 4.8},
+        "every_n:2:timestep": {"ms": 50.0, "speedup": 2.0}}}]}))
     monkeypatch.setattr(figures, "REPO", tmp_path)
     monkeypatch.setattr(figures, "DOCS", tmp_path)
     out = figures.image_frontier(None)
