@@ -540,9 +540,9 @@ def sample_grids(folder: Path) -> list[Path]:
 
 HEADLINE_ROBOT = {"lift": ("dense", "ddim:7", "file:lift_steps_0.93", "pruner:lift_tts_0.93@0.93"),
                   "can": ("dense", "ddim:7", "file:can_steps_0.93_256calls", "pruner:can_tts_0.93_256calls@0.93")}
-HEADLINE_IMAGE = ("dense", "ddim:10", "every_n:5:timestep", "taylorseer:5:2", "toca:6@0.8", "diffusers:fbc@0.8",
-                  "file:digits_steps_0.8+taylor2", "pruner:digits_tts_0.8@0.8",
-                  "pruner:digits_tts_steps_0.8@0.8+taylor2")
+HEADLINE_IMAGE = ("dense", "ddim:10", "every_n:5:timestep", "taylorseer:5:2", "file:digits_steps_0.8+taylor2",
+                  "pruner:digits_tts_steps_0.8@0.8+taylor2", "taylorseer:3:2+ddim:20",
+                  "file:digits_steps_ddim20_0.5+ddim:20+taylor2")
 
 
 def headline_robot(folder: Path) -> str:
@@ -613,7 +613,7 @@ def headline_image(folder: Path) -> str:
         if vs is not None and vs[0].method not in HEADLINE_IMAGE + tuple(rivals):
             rivals.append(vs[0].method)
     at = HEADLINE_IMAGE.index("ddim:10") + 1
-    versus_head = " | FID minus the best fewer-step sampler as fast, batch 1 (95% CI)" if points else ""
+    versus_head = " | minus the best fewer-step sampler as fast, batch 1 (95% CI)" if points else ""
     rows = ["| method | FID | MACs speed-up | " + " | ".join(f"wall-clock speed-up, batch {b}" for b in batches)
             + versus_head + " |", "|---|---|---|" + "---|" * (len(batches) + bool(points))]
     for name in HEADLINE_IMAGE[:at] + tuple(rivals) + HEADLINE_IMAGE[at:]:

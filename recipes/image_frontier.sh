@@ -40,7 +40,7 @@ base20() {  # the 20-step base's searched steps and the step pruner trained on t
 # 80% reuse on the 50-step base, the TTS step pruner at other budgets, the 20-step base, then the rest
 methods=(dense)
 for k in 5 8 10 15 20; do methods+=("ddim:$k"); done
-for k in 10 15 8 20 5; do methods+=("dpm:$k"); done
+for k in 10 15 20 8 5; do methods+=("dpm:$k"); done
 for n in 2 3 5; do methods+=("every_n:$n:timestep"); done
 methods+=(taylorseer:3:2 taylorseer:5:2 "file:$steps50+taylor2")
 for rho in 0.8 0.9 0.7 0.6; do methods+=("pruner:$pruner50@$rho+taylor2"); done

@@ -186,7 +186,7 @@ def test_image_headline_holds_each_sparse_row_against_the_best_ddim_as_fast(tmp_
         m: {"ms": 100.0 / s, "speedup": s * b} for m, s in speed.items()}} for b in (1, 16)]}))
     lines = tables.headline_image(tmp_path).strip().splitlines()
     assert lines[0].endswith("| wall-clock speed-up, batch 1 | wall-clock speed-up, batch 16 "
-                             "| FID minus the best fewer-step sampler as fast, batch 1 (95% CI) |")
+                             "| minus the best fewer-step sampler as fast, batch 1 (95% CI) |")
     names = [line.split("`")[1] for line in lines[2:]]
     assert names == ["dense", "ddim:10", "ddim:8", "every_n:5:timestep", "file:digits_steps_0.8+taylor2"]
     assert "| `every_n:5:timestep` | 90.00 | 5.00x | 6.00x | 96.00x | `ddim:8`: +25.00 (+19.00, +31.00) |" in lines
