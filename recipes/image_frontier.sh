@@ -46,7 +46,7 @@ methods+=(taylorseer:3:2 taylorseer:5:2 "file:$steps50+taylor2")
 for rho in 0.8 0.9 0.7 0.6; do methods+=("pruner:$pruner50@$rho+taylor2"); done
 methods+=("file:$steps20+taylor2+ddim:20" "pruner:checkpoints/pruners/$pruner20@0.5+taylor2+ddim:20"
           toca:6@0.8 duca:6@0.8 every_n:2:timestep+ddim:20 taylorseer:3:2+ddim:20 toca:6@0.6 duca:6@0.6
-          every_n:3:timestep+ddim:20 toca:6@0.6+ddim:20 duca:6@0.6+ddim:20)
+          toca:6@0.6+ddim:20 duca:6@0.6+ddim:20 every_n:3:timestep+ddim:20)
 parts=${PARTS:-runs,latency}
 if [[ $parts == *runs* ]]; then
   for m in "${methods[@]}"; do
