@@ -595,15 +595,11 @@ def headline_image(folder: Path) -> str:
     frontier's one-process latencies where they exist, else from latency.json (the full tables:
     docs/results/image.md). MACs are against the dense 50-step run, also for a run on fewer steps."""
     speed: dict[str, dict[int, float]] = {}
-    lat_path = folder / "latency.json"
-    for row in json.loads(lat_path.read_text())["rows"] if lat_path.exists() else []:
-        for name, m in row["methods"].items():
-            speed.setdefault(name, {})[row["batch"]] = m["speedup"]
     frontier_lat = folder / "frontier_latency.json"
-    frontier_rows = json.loads(frontier_lat.read_text())["rows"] if frontier_lat.exists() else []
-    for row in frontier_rows:  # the frontier's one-process latencies replace the older measurement
-        for name, m in row["methods"].items():
-            speed.setdefault(name, {})[row["batch"]] = m["speedup"]
+    for path in (folder / "latency.json", frontier_lat):  # the frontier's latencies replace the older ones
+        for row in json.loads(path.read_text())["rows"] if path.exists() else []:
+            for name, m in row["methods"].items():
+                speed.setdefault(name, {})[row["batch"]] = m["speedup"]
     batches = sorted({b for sp in speed.values() for b in sp})
     points = {p.method: p for p in frontier.image_frontier_points(folder, frontier_lat, 1)}
     by = {r["method"]: r for r in image_runs(folder)}

@@ -163,7 +163,7 @@ def test_image_frontier_lower_fid_is_better_and_the_verdict_is_conservative(tmp_
     assert frontier.image_frontier_points(tmp_path, latency, 1) == []
 
 
-def test_image_headline_holds_each_sparse_row_against_the_best_ddim_as_fast(tmp_path):
+def test_image_headline_holds_each_sparse_row_against_the_best_sampler_as_fast(tmp_path):
     """README image table: speed-ups from the frontier's latencies (they replace latency.json's), the
     sampler a headline sparse row is held against shown as a row of its own, and the verdict column."""
     import tables
