@@ -237,7 +237,7 @@ def encode_condition(model: nn.Module, timesteps: Any, cond: Optional[torch.Tens
 
 
 @torch.no_grad()
-def sample_actions(model: TransformerForDiffusion, cond: Optional[torch.Tensor], scheduler, *,
+def sample_actions(model: TransformerForDiffusion, cond: Optional[torch.Tensor], scheduler: Any, *,
                    batch: Optional[int] = None, generator: Optional[torch.Generator] = None,
                    fast: bool = True) -> torch.Tensor:
     """Diffusion Policy's conditional sampling loop (normalised actions [B, horizon, output_dim]).

@@ -13,7 +13,7 @@ zero: ``mj_step`` computes positions before it integrates, so a recorded observa
 by one physics substep (under a millimetre for the scripted experts), while a restored state's
 positions are computed from that state itself.
 
-Rendering is the expensive part (about 0.1 s per frame for two 84x84 cameras on this CPU): demos are
+Rendering is the expensive part (about 0.1 s per frame for two 84x84 cameras on one CPU core with software GL): demos are
 rendered in chunks of ``--chunk`` kept under ``<out>.parts/``, so an interrupted run resumes, and the
 output is written atomically at the end.
 """

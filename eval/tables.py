@@ -489,7 +489,8 @@ def image_table(folder: Path) -> str:
             ("1.00x | " if name == "dense" else
              f"{lat_rows[b]['methods'][name]['speedup']:.2f}x | " if name in lat_rows[b]["methods"] else "- | ")
             for b in batches)
-        plan = r["plan"] + (f" + Taylor forecast O={_forecast_order(r)}" if _forecast_order(r) else "")
+        # a pruner's repr "pruner[budget:0.8](forward,timestep)" would render as a Markdown link
+        plan = r["plan"].replace("[", "\\[") + (f" + Taylor forecast O={_forecast_order(r)}" if _forecast_order(r) else "")
         if dense and r["steps"] != dense["steps"]:
             plan += f", {r['steps']} sampler steps"
         rows.append(f"| `{name}` | {plan} | {r['sparsity']:.3f} | {_macs_speedup(r, dense):.2f}x | "

@@ -2,7 +2,7 @@
 # What the reuse steps of a 93% call cost: the call timed against DDIM with the same number of computed
 # steps (ddim:matched), in one process, interleaved, at batch 1 and 28, one thread, Lift policy; the
 # breakdown (encoder, pruner, wait, computed and reuse steps, engine, scheduler) is in each row.
-# The pruner runs before step 0 (--parallel off: on this CPU a worker thread contends for the GIL with
+# The pruner runs before step 0 (--parallel off: on a CPU with few cores a worker thread contends for the GIL with
 # step 0 and waits longer than the pruner takes). About 3 min on a quiet machine (pause other jobs: timings share the cores). Then python eval/tables.py
 #   bash recipes/reuse_cost.sh
 set -euo pipefail

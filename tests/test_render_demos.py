@@ -111,7 +111,7 @@ def test_a_camera_env_reset_collects_the_render_context_it_dropped(monkeypatch):
 def test_camera_envs_in_one_process_render_their_own_scene_across_hard_resets(lift_demos):
     """Two camera envs stepped in turn, each hard reset (which drops and frees a render context),
     render what a lone env renders: each binds its own GL context, and freeing a dropped context
-    no longer deletes the live one's buffers (which gave wrong frames)."""
+    leaves the live one's buffers intact (freeing them gave wrong frames)."""
     from robot_suite.tasks import camera_obs, make_env, reset_env
 
     cams = ("agentview", "robot0_eye_in_hand")

@@ -154,21 +154,23 @@ def test_coverage_table_pairs_each_sampler_with_dense_of_the_same_policy(tmp_pat
 def test_image_tables_show_ddim_with_the_same_compute_and_macs_against_dense_50(tmp_path):
     import tables
 
-    def run(method, steps, realised, fid):
+    def run(method, steps, realised, fid, plan="dense (untouched model)"):
         (tmp_path / f"digits_{method.replace(':', '-')}.json").write_text(json.dumps(
             {"method": method, "steps": steps, "fid": fid, "num_samples": 2000, "macs_dense_per_image": 100.0 * steps,
              "macs_realised_per_image": realised, "macs_pruner_per_image": 0.0, "macs_ratio_with_pruner": 1.0,
-             "plan": "dense (untouched model)", "sparsity": 0.0, "sfid": fid, "s_per_image": 0.1,
+             "plan": plan, "sparsity": 0.0, "sfid": fid, "s_per_image": 0.1,
              "provenance": {"git_sha": "0" * 40}}))
 
     run("dense", 50, 5000.0, 40.0)
     run("ddim:10", 10, 1000.0, 55.0)  # its own dense is 10 steps: the MACs column must still say 5x
+    run("pruner:p@0.8", 50, 1000.0, 45.0, plan="pruner[budget:0.8](forward,timestep)")
     (tmp_path / "latency.json").write_text(json.dumps({"rows": [
         {"batch": 16, "dense_ms": 100.0, "methods": {"ddim:10": {"speedup": 4.9}}}]}))
     table = tables.headline_image(tmp_path)
     assert "| `ddim:10` | 55.00 | 5.00x | 4.90x |" in table and table.index("`dense`") < table.index("`ddim:10`")
     full = tables.image_table(tmp_path)
     assert "| `ddim:10` | dense (untouched model), 10 sampler steps | 0.000 | 5.00x | 55.00 | +37.5% |" in full
+    assert "| `pruner:p@0.8` | pruner\\[budget:0.8](forward,timestep) |" in full  # not a Markdown link
 
 
 def test_pruner_training_table_shows_the_curve_of_a_training_in_progress(tmp_path):

@@ -34,7 +34,7 @@ def test_dropout_reaches_every_residual_branch_of_the_trained_policy(tmp_path, o
 
 
 def test_a_run_shorter_than_its_warm_up_trains(tmp_path, one_thread):
-    """--steps below 10 used to divide by a zero-step warm-up."""
+    """--steps below 10 still trains: the warm-up is at least one step."""
     import train_policy
     from tts.adapters.dp_policy import load_policy
 

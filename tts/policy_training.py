@@ -80,7 +80,7 @@ class PolicyPrunerTrainingConfig(PrunerTrainingConfig):
             raise ValueError("static trains a table of logits: prior / init_schedule / head_bias do not apply")
 
 
-def build_policy_pruner(policy, config: PolicyPrunerTrainingConfig) -> PrunerModule:
+def build_policy_pruner(policy: Any, config: PolicyPrunerTrainingConfig) -> PrunerModule:
     """A fresh pruner (or static router) for ``policy``'s branches and steps, with ``config.prior``
     set. Draws its initial weights from torch's global generator."""
     cfg = policy.model.config
@@ -156,7 +156,7 @@ def _validation_rows(policy, plan: Optional[PrunerPlan], val: Sequence[dict],
             for g in episode_groups(val, config.batch, None)]
 
 
-def train_policy_pruner(policy, episodes: Sequence[dict], config: PolicyPrunerTrainingConfig, *,
+def train_policy_pruner(policy: Any, episodes: Sequence[dict], config: PolicyPrunerTrainingConfig, *,
                         pruner: Optional[PrunerModule] = None, metadata: Optional[Mapping[str, Any]] = None,
                         log: Optional[Callable[[str], None]] = print) -> PrunerModule:
     """Train a pruner for ``policy`` on recorded ``episodes`` (the first ``n_train`` for training,

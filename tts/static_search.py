@@ -22,7 +22,7 @@ caller-supplied loss (e.g. L1 of the final sample against the dense one, same no
 """
 from __future__ import annotations
 
-from typing import Callable, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import torch
 
@@ -44,7 +44,7 @@ class _ComputeAndKeep(Plan):
         return "record"
 
 
-def record_branch_outputs(model, sample: Callable[[], None]) -> list[list[list[torch.Tensor]]]:
+def record_branch_outputs(model: Any, sample: Callable[[], None]) -> list[list[list[torch.Tensor]]]:
     """Every branch's output at every step of every dense sampling call that ``sample()`` runs on
     ``model`` (anything :func:`tts.accelerate` accepts): ``out[call][k][b]``, float32 copies with
     the batch dimension first."""
@@ -74,7 +74,7 @@ def record_branch_outputs(model, sample: Callable[[], None]) -> list[list[list[t
     return per_call
 
 
-def reuse_errors(model, sample: Callable[[], None]) -> torch.Tensor:
+def reuse_errors(model: Any, sample: Callable[[], None]) -> torch.Tensor:
     """``E[b, j, i]`` (float64, [nb, K, K], zero where i >= j) averaged over the samples of every
     dense sampling call that ``sample()`` runs on ``model``. All calls must have the same number of
     steps."""

@@ -29,7 +29,7 @@ ratio for the same compute.
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import torch
 
@@ -141,11 +141,11 @@ def fresh_ratio_for(sparsity: float, n: int, token_share: float, alternate: bool
     return r
 
 
-def toca(n: int, fresh_ratio: float, **kw) -> TokenRefreshPlan:
+def toca(n: int, fresh_ratio: float, **kw: Any) -> TokenRefreshPlan:
     """ToCa-style: attention-score token selection, refresh at every step between full computes."""
     return TokenRefreshPlan(n, fresh_ratio, score="attention", **kw)
 
 
-def duca(n: int, fresh_ratio: float, **kw) -> TokenRefreshPlan:
+def duca(n: int, fresh_ratio: float, **kw: Any) -> TokenRefreshPlan:
     """DuCa-style: similarity-based (FlashAttention-friendly) selection, aggressive/conservative alternation."""
     return TokenRefreshPlan(n, fresh_ratio, score=kw.pop("score", "duplicate"), alternate=True, **kw)

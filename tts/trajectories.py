@@ -66,18 +66,18 @@ def held_out_episodes(path: Path, first: int, successful_only: bool = True) -> t
     return episodes[first:], len(episodes)
 
 
-def camera_keys(policy) -> tuple[str, ...]:
+def camera_keys(policy: Any) -> tuple[str, ...]:
     """The camera observation keys of an image policy (``image_cfg.cameras``); () for a low-dim one."""
     image_cfg = getattr(policy, "image_cfg", None)
     return tuple(image_cfg.cameras) if image_cfg is not None else ()
 
 
-def replay_keys(policy) -> tuple[str, ...]:
+def replay_keys(policy: Any) -> tuple[str, ...]:
     """The per-call arrays a replay of ``policy`` needs: :data:`REPLAY_KEYS` and its camera windows."""
     return REPLAY_KEYS + camera_keys(policy)
 
 
-def obs_dict(policy, window: torch.Tensor, frames: Optional[Mapping[str, Any]] = None) -> dict[str, np.ndarray]:
+def obs_dict(policy: Any, window: torch.Tensor, frames: Optional[Mapping[str, Any]] = None) -> dict[str, np.ndarray]:
     """Split a stored obs window [E, To, obs_dim] back into the policy's observation keys
     (``policy.cfg.obs_keys`` / ``obs_dims``, in that order); an image policy's camera windows
     [E, To, H, W, 3] come from ``frames`` (e.g. a :class:`Frame`'s data)."""
