@@ -82,7 +82,7 @@ def main(argv=None) -> dict:
     with tts.accelerate(policy, pruner.config.directions, pruner=pruner, sparsity=args.sparsity) as acc:
         for i in range(0, len(held_out), args.batch):
             acc.calls.clear()
-            replay(policy, held_out[i:i + args.batch], lambda frame: weights.append(frame.weight))
+            replay(policy, held_out[i:i + args.batch], lambda frame, _: weights.append(frame.weight))
             calls += acc.summary().calls
         prior = read_grid(meta["prior"], *calls[-1].decisions()[:, 0].shape, reuse=meta.get("prior_reuse"))
         res = agreement(calls, prior, weights)

@@ -261,7 +261,8 @@ TABLE7_ROWS = (("dense", "dense"), ("DDIM-7 (leading)", "ddim:7"), ("DDIM-3 (lea
                ("timestep only (pruner, scratch)", "pruner:{p}_reference_timestep_0.93"),
                ("rollout only (pruner, scratch)", "pruner:{p}_reference_rollout_0.93"),
                ("omni (pruner, scratch)", "pruner:{p}_reference_forward-timestep-rollout_0.93"),
-               ("omni (pruner, from the searched prior)", "pruner:{p}_reference_prior_0.93"))
+               ("omni (pruner, from the searched prior)", "pruner:{p}_reference_prior_0.93"),
+               ("omni (pruner, scratch, paired noise)", "pruner:{p}_reference_paired_forward-timestep-rollout_0.93"))
 
 
 def table7(folder: Path) -> str:
@@ -457,6 +458,22 @@ def rollout_age_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+def sample_spread_table(folder: Path) -> str:
+    """Spread of the actions across noise draws and L1 to the dense action on the same / another draw
+    (eval/sample_spread.py: sample_spread_<policy>.json, one run each)."""
+    rows = ["| policy | method | held-out calls x draws | spread across draws | L1 to dense, same draw | "
+            "L1 to dense, another draw | git SHA |", "|---|---|---|---|---|---|---|"]
+    for path in sorted(folder.glob("sample_spread_*.json")):
+        r = json.loads(path.read_text())
+        pol = policy_of({"task": r["task"], "checkpoint": r["checkpoint"]})
+        for method, m in r["methods"].items():
+            rows.append(f"| {pol} | `{method}` | {m['calls']} x {m['draws']} | {m['spread']:.4f} | "
+                        f"{m['l1_same_draw']:.4f} | {m['l1_other_draw']:.4f} | `{r['provenance']['git_sha'][:10]}` |")
+    if len(rows) == 2:
+        return "No sample-spread run yet (eval/sample_spread.py).\n"
+    return "\n".join(rows) + "\n"
+
+
 IMAGE_ORDER = ("dense", "every_n:5:timestep", "taylorseer:5:2", "toca:6@0.8", "duca:6@0.8", "diffusers:fbc@0.8",
                "diffusers:taylorseer:5:2", "file:digits_bac_0.8", "pruner:digits_tts_0.8@0.8",
                "file:digits_bac_0.8+taylor2", "pruner:digits_tts_taylor2_0.8@0.8+taylor2",
@@ -649,7 +666,7 @@ def main() -> None:
                              "runs": robot_table(robot)})
     fill(docs / "testbed.md", {"steps": steps_table(robot), "table7": table7(robot), "operators": operators_table(REPO / "results" / "experts"),
                                 "push-operators": push_operators_table(REPO / "results" / "experts"),
-                                "coverage": coverage_table(robot),
+                                "coverage": coverage_table(robot), "sample-spread": sample_spread_table(robot),
                                 "pruner-training": pruner_training_table(REPO / "checkpoints" / "pruners")})
     fill(docs / "visuomotor.md", {"visuomotor": visuomotor_table(robot)})
     readme = {"headline-robot": headline_robot(robot)}

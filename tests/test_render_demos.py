@@ -166,7 +166,7 @@ def test_trajectories_of_an_image_policy_carry_its_camera_windows_and_replay(lif
     assert ep["agentview_image"].shape == (len(ep["obs"]), 2, 32, 32, 3) and ep["agentview_image"].dtype == np.uint8
     policy = load_policy(tmp_path / "img_policy")
     calls = []
-    replay(policy, episodes, lambda frame: calls.append(frame.index))
+    replay(policy, episodes, lambda frame, _: calls.append(frame.index))
     assert calls == list(range(len(ep["obs"])))
     frames = batch_frames(policy, episodes, 1)
     assert frames[0]["robot0_eye_in_hand_image"].shape == (2, 2, 32, 32, 3)
