@@ -265,6 +265,14 @@ TABLE7_ROWS = (("dense", "dense"), ("DDIM-7 (leading)", "ddim:7"), ("DDIM-3 (lea
                ("omni (pruner, scratch, paired noise)", "pruner:{p}_reference_paired_forward-timestep-rollout_0.93"))
 
 
+def _pruner_cost(r: dict) -> str:
+    """A pruner row's cost next to the policy: the pruner's MACs per call over a dense call's."""
+    last = (r.get("tts") or {}).get("last_call") or {}
+    if not last.get("macs_pruner"):
+        return ""
+    return f"; pruner MACs {last['macs_pruner'] / last['macs_dense']:.2f}x a dense call's"
+
+
 def table7(folder: Path) -> str:
     """The paper's Table 7 shape at 93% (recipes/table7.sh): per policy with its static direction rows
     or reference-recipe pruners, on the test seeds, the score and the paired difference to dense on the
@@ -286,11 +294,12 @@ def table7(folder: Path) -> str:
             if rs[0].get("mean_max_coverage") is not None:
                 cov, n = pooled(rs, "mean_max_coverage")
                 d = None if pattern == "dense" else paired_score_difference(rs, dense)
-                cells.append(f"coverage {cov:.3f} ({n})" + ("" if d is None else f"; {d[0]:+.3f} ({d[1]:+.3f}, {d[2]:+.3f})"))
+                cells.append(f"coverage {cov:.3f} ({n})" + ("" if d is None else f"; {d[0]:+.3f} ({d[1]:+.3f}, {d[2]:+.3f})")
+                             + _pruner_cost(rs[0]))
                 continue
             rate, n = pooled(rs)
             paired = "" if pattern == "dense" else "; " + paired_vs_dense(rs, dense).split(" on ")[0]
-            cells.append(f"{rate:.2f} ({n}){paired}")
+            cells.append(f"{rate:.2f} ({n}){paired}{_pruner_cost(rs[0])}")
         rows.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(rows) + "\n"
 

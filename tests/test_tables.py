@@ -79,16 +79,17 @@ def test_table7_rows_pool_test_seeds_per_policy_and_skip_validation(tmp_path):
 
     import tables
 
-    def write(method, successes, seed, ckpt="checkpoints/lift_mh_dpt"):
+    def write(method, successes, seed, ckpt="checkpoints/lift_mh_dpt", macs_pruner=0.0):
         eps = [{"seed": seed + i, "success": bool(x)} for i, x in enumerate(successes)]
         doc = {"task": "lift", "checkpoint": ckpt, "method": method, "episodes_requested": len(eps),
                "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
-               "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps}
+               "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps,
+               "tts": {"last_call": {"macs_dense": 2e9, "macs_pruner": macs_pruner}}}
         (tmp_path / f"{method.replace(':', '-')}_{seed}.json").write_text(json.dumps(doc))
 
     assert "No policy" in tables.table7(tmp_path)
     write("dense", [1, 1, 1, 0], 100000)
-    write("pruner:lift-lift_mh_dpt_reference_rollout_0.93", [1, 0, 1, 0], 100000)
+    write("pruner:lift-lift_mh_dpt_reference_rollout_0.93", [1, 0, 1, 0], 100000, macs_pruner=3e9)
     write("pruner:lift-lift_mh_dpt_reference_rollout_0.93", [1, 1], 400000)  # validation: not pooled
     write("file:lift-lift_mh_dpt_steps_0.93", [1, 1, 1, 1], 100000)
     text = tables.table7(tmp_path)
@@ -97,7 +98,9 @@ def test_table7_rows_pool_test_seeds_per_policy_and_skip_validation(tmp_path):
     row = {r.split(" | ")[0][2:]: r.split(" | ")[1].rstrip(" |") for r in rows}
     assert row["dense"] == "0.75 (4)"
     assert row["rollout only (pruner, scratch)"].startswith("0.50 (4); -0.250 (")
+    assert row["rollout only (pruner, scratch)"].endswith("; pruner MACs 1.50x a dense call's")
     assert row["searched static steps"].startswith("1.00 (4); +0.250 (")
+    assert "pruner MACs" not in row["searched static steps"]
     assert row["omni (pruner, scratch)"] == "-"
 
 
@@ -258,3 +261,16 @@ def test_training_curves_label_each_reference_pruner_and_take_the_searched_steps
         "omni, from the searched prior": [1], "omni, from scratch": [1, 2], "timestep only, from scratch": [1],
         "rollout only, from scratch": []}
     assert training_curves_of(tmp_path, "lift")[:2] == ({}, None)
+
+
+def test_sample_spread_table_lists_every_method_of_a_run(tmp_path):
+    import tables
+
+    assert tables.sample_spread_table(tmp_path).startswith("No sample-spread run")
+    doc = {"task": "pusht", "checkpoint": "checkpoints/pusht_mh_dpt_17k", "provenance": {"git_sha": "abcdef0123456"},
+           "methods": {"dense": {"calls": 10, "draws": 4, "spread": 0.1, "l1_same_draw": 0.0, "l1_other_draw": 0.2},
+                       "dpm:7": {"calls": 10, "draws": 4, "spread": 0.05, "l1_same_draw": 0.1, "l1_other_draw": 0.15}}}
+    (tmp_path / "sample_spread_pusht-pusht_mh_dpt_17k.json").write_text(json.dumps(doc))
+    rows = tables.sample_spread_table(tmp_path).strip().splitlines()[2:]
+    assert rows == ["| pusht (pusht_mh_dpt_17k) | `dense` | 10 x 4 | 0.1000 | 0.0000 | 0.2000 | `abcdef0123` |",
+                    "| pusht (pusht_mh_dpt_17k) | `dpm:7` | 10 x 4 | 0.0500 | 0.1000 | 0.1500 | `abcdef0123` |"]
