@@ -17,11 +17,13 @@ actions (every dimension on the policy's [-1, 1] scale), over every call but eac
   - ``l1_same_draw``: the L1 of draw 0 to the recorded dense action (the same noise);
   - ``l1_other_draw``: the L1 of draws 1.. to the recorded dense action (other noise: what an
     unpaired training loss measures; the dense policy's own value is what a second draw costs).
-Writes ``results/robot/sample_spread_<policy>.json`` (one run, every method in it).
+Writes ``results/robot/sample_spread_<policy>.json``: one run, every method in it (``--resume``: none
+when it already holds every method asked for; else all of them are measured again).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -88,6 +90,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--draws", type=int, default=4, help="noise draws per call (at least 2)")
     ap.add_argument("--batch", type=int, default=16, help="episodes replayed in lockstep")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--resume", action="store_true",
+                    help="do nothing when the output already holds every method asked for (else measure them all)")
     add_all_episodes_option(ap)
     args = parse_args(ap, argv)
     if args.draws < 2:
@@ -97,6 +101,11 @@ def main(argv=None) -> dict:
                                              successful_only=not args.all_episodes)
     policy = load_policy(args.checkpoint)
     out = args.out or REPO / "results" / "robot" / f"sample_spread_{policy_slug(args.task, args.checkpoint)}.json"
+    if args.resume and out.exists():
+        done = json.loads(out.read_text())
+        if {m.label for m in methods} <= set(done["methods"]):
+            print(f"{out} already holds every method asked for")
+            return done
     res = {"task": args.task, "checkpoint": str(args.checkpoint), "trajectories": str(args.trajectories),
            "episodes": f"{args.first_episode}..{n_episodes - 1}", "action_space": "normalised", "methods": {},
            "provenance": provenance(seeds={"noise": f"recorded seed + d * {DRAW_OFFSET}, d = 0..{args.draws - 1}"})}
