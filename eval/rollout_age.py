@@ -22,8 +22,8 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, add_all_episodes_option, parse_args, policy_slug, provenance, write_json  # noqa: E402
-from common.methods import ROBOT_KINDS, VOCABULARY, install, parse_method  # noqa: E402
+from common import REPO, add_all_episodes_option, add_replay_options, parse_args, policy_slug, provenance, write_json  # noqa: E402
+from common.methods import ROBOT_KINDS, install, parse_method  # noqa: E402
 from robot_suite.replay import replay  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
@@ -53,10 +53,7 @@ def ages_of(policy, method, episodes) -> dict:
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--task", required=True)
-    ap.add_argument("--checkpoint", type=Path, required=True)
-    ap.add_argument("--trajectories", type=Path, required=True)
-    ap.add_argument("--methods", nargs="+", required=True, help=f"specs of: {VOCABULARY}")
+    add_replay_options(ap)
     ap.add_argument("--first-episode", type=int, default=None,
                     help="first held-out episode (default: 96 for Lift, 89 for Can, as the table's pruners)")
     ap.add_argument("--episodes", type=int, default=16)

@@ -32,8 +32,8 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, add_all_episodes_option, parse_args, policy_slug, provenance, write_json  # noqa: E402
-from common.methods import ROBOT_KINDS, VOCABULARY, Method, install_policy, parse_method  # noqa: E402
+from common import REPO, add_all_episodes_option, add_replay_options, parse_args, policy_slug, provenance, write_json  # noqa: E402
+from common.methods import ROBOT_KINDS, Method, install_policy, parse_method  # noqa: E402
 from robot_suite.replay import replay  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
@@ -82,10 +82,7 @@ def sample_draws(policy, method: Method, episodes: Sequence[dict], draws: int,
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--task", required=True)
-    ap.add_argument("--checkpoint", type=Path, required=True)
-    ap.add_argument("--trajectories", type=Path, required=True)
-    ap.add_argument("--methods", nargs="+", required=True, help=f"specs of: {VOCABULARY}")
+    add_replay_options(ap)
     ap.add_argument("--first-episode", type=int, default=96, help="first held-out episode")
     ap.add_argument("--draws", type=int, default=4, help="noise draws per call (at least 2)")
     ap.add_argument("--batch", type=int, default=16, help="episodes replayed in lockstep")

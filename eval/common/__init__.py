@@ -101,6 +101,17 @@ def policy_slug(task: str, checkpoint: Any = None) -> str:
     return task if name == f"{task}_dpt" else f"{task}-{name}"
 
 
+def add_replay_options(ap) -> None:
+    """``--task``, ``--checkpoint``, ``--trajectories`` and ``--methods``: the options of a tool that
+    replays recorded episodes of a policy through one or more methods."""
+    from .methods import VOCABULARY
+
+    ap.add_argument("--task", required=True)
+    ap.add_argument("--checkpoint", type=Path, required=True)
+    ap.add_argument("--trajectories", type=Path, required=True)
+    ap.add_argument("--methods", nargs="+", required=True, help=f"specs of: {VOCABULARY}")
+
+
 def add_all_episodes_option(ap) -> None:
     """``--all-episodes``: the trajectory tools use every recorded episode, not only the successful ones."""
     ap.add_argument("--all-episodes", action="store_true",
