@@ -17,8 +17,8 @@ actions (every dimension on the policy's [-1, 1] scale), over every call but eac
   - ``l1_same_draw``: the L1 of draw 0 to the recorded dense action (the same noise);
   - ``l1_other_draw``: the L1 of draws 1.. to the recorded dense action (other noise: what an
     unpaired training loss measures; the dense policy's own value is what a second draw costs).
-Writes ``results/robot/sample_spread_<policy>.json``: one run, every method in it (``--resume``: none
-when it already holds every method asked for; else all of them are measured again).
+Writes ``results/robot/sample_spread_<policy>.json``, one entry per method with its own provenance
+(``--resume`` keeps the entries measured on the same episodes and draws and adds the others).
 """
 from __future__ import annotations
 
@@ -88,7 +88,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--batch", type=int, default=16, help="episodes replayed in lockstep")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--resume", action="store_true",
-                    help="do nothing when the output already holds every method asked for (else measure them all)")
+                    help="keep the methods the output already holds (measured on the same episodes and draws) "
+                         "and measure only the others")
     add_all_episodes_option(ap)
     args = parse_args(ap, argv)
     if args.draws < 2:
@@ -98,16 +99,17 @@ def main(argv=None) -> dict:
                                              successful_only=not args.all_episodes)
     policy = load_policy(args.checkpoint)
     out = args.out or REPO / "results" / "robot" / f"sample_spread_{policy_slug(args.task, args.checkpoint)}.json"
-    if args.resume and out.exists():
-        done = json.loads(out.read_text())
-        if {m.label for m in methods} <= set(done["methods"]):
-            print(f"{out} already holds every method asked for")
-            return done
-    res = {"task": args.task, "checkpoint": str(args.checkpoint), "trajectories": str(args.trajectories),
-           "episodes": f"{args.first_episode}..{n_episodes - 1}", "action_space": "normalised", "methods": {},
-           "provenance": provenance(seeds={"noise": f"recorded seed + d * {DRAW_OFFSET}, d = 0..{args.draws - 1}"})}
+    setup = {"task": args.task, "checkpoint": str(args.checkpoint), "trajectories": str(args.trajectories),
+             "episodes": f"{args.first_episode}..{n_episodes - 1}", "draws": args.draws, "action_space": "normalised"}
+    res = json.loads(out.read_text()) if args.resume and out.exists() else {}
+    if any(res.get(k) != v for k, v in setup.items()):  # another set-up: its methods do not compare
+        res = {**setup, "methods": {}}
     for method in methods:
+        if method.label in res["methods"]:
+            print(f"{args.task} {method.label}: measured already ({out})")
+            continue
         stats = spread_stats(*sample_draws(policy, method, episodes, args.draws, args.batch))
+        stats["provenance"] = provenance(seeds={"noise": f"recorded seed + d * {DRAW_OFFSET}, d = 0..{args.draws - 1}"})
         res["methods"][method.label] = stats
         write_json(out, res)  # a method at a time: an interrupted run keeps what it measured
         print(f"{args.task} {method.label}: spread {stats['spread']:.4f}, L1 to dense on the same draw "

@@ -469,7 +469,7 @@ def rollout_age_table(folder: Path) -> str:
 
 def sample_spread_table(folder: Path) -> str:
     """Spread of the actions across noise draws and L1 to the dense action on the same / another draw
-    (eval/sample_spread.py: sample_spread_<policy>.json, one run each)."""
+    (eval/sample_spread.py: sample_spread_<policy>.json)."""
     rows = ["| policy | method | held-out calls x draws | spread across draws | L1 to dense, same draw | "
             "L1 to dense, another draw | git SHA |", "|---|---|---|---|---|---|---|"]
     for path in sorted(folder.glob("sample_spread_*.json")):
@@ -477,7 +477,7 @@ def sample_spread_table(folder: Path) -> str:
         pol = policy_of({"task": r["task"], "checkpoint": r["checkpoint"]})
         for method, m in r["methods"].items():
             rows.append(f"| {pol} | `{method}` | {m['calls']} x {m['draws']} | {m['spread']:.4f} | "
-                        f"{m['l1_same_draw']:.4f} | {m['l1_other_draw']:.4f} | `{r['provenance']['git_sha'][:10]}` |")
+                        f"{m['l1_same_draw']:.4f} | {m['l1_other_draw']:.4f} | `{m['provenance']['git_sha'][:10]}` |")
     if len(rows) == 2:
         return "No sample-spread run yet (eval/sample_spread.py).\n"
     return "\n".join(rows) + "\n"

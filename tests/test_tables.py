@@ -267,9 +267,11 @@ def test_sample_spread_table_lists_every_method_of_a_run(tmp_path):
     import tables
 
     assert tables.sample_spread_table(tmp_path).startswith("No sample-spread run")
-    doc = {"task": "pusht", "checkpoint": "checkpoints/pusht_mh_dpt_17k", "provenance": {"git_sha": "abcdef0123456"},
-           "methods": {"dense": {"calls": 10, "draws": 4, "spread": 0.1, "l1_same_draw": 0.0, "l1_other_draw": 0.2},
-                       "dpm:7": {"calls": 10, "draws": 4, "spread": 0.05, "l1_same_draw": 0.1, "l1_other_draw": 0.15}}}
+    sha = {"provenance": {"git_sha": "abcdef0123456"}}
+    doc = {"task": "pusht", "checkpoint": "checkpoints/pusht_mh_dpt_17k",
+           "methods": {"dense": {"calls": 10, "draws": 4, "spread": 0.1, "l1_same_draw": 0.0, "l1_other_draw": 0.2, **sha},
+                       "dpm:7": {"calls": 10, "draws": 4, "spread": 0.05, "l1_same_draw": 0.1, "l1_other_draw": 0.15,
+                                 **sha}}}
     (tmp_path / "sample_spread_pusht-pusht_mh_dpt_17k.json").write_text(json.dumps(doc))
     rows = tables.sample_spread_table(tmp_path).strip().splitlines()[2:]
     assert rows == ["| pusht (pusht_mh_dpt_17k) | `dense` | 10 x 4 | 0.1000 | 0.0000 | 0.2000 | `abcdef0123` |",
