@@ -11,12 +11,15 @@
 #             8 heads, FF 1024, head bias zero, AdamW 1e-4, 20 epochs, batches of 16 full-horizon
 #             episodes, unpaired noise), from scratch for each direction set (forward / timestep /
 #             rollout / all three) and, for all three, from the searched prior; the pruner's
-#             forward/backward in bfloat16 autocast (PRECISION=float32 for full precision). A
+#             forward/backward in bfloat16 autocast (PRECISION=float32 for full precision); and
+#             omni-paired: the omni recipe with the dense call's own noise as target (--paired),
+#             whose loss no longer rewards an action between the modes. A
 #             reference-length training is hours on 2 CPU cores (on a GPU, DEVICE=cuda); each resumes from its state_dir (recipes/lib.sh) after
 #             an interruption. PRUNERS picks
-#             some of "omni prior forward timestep rollout" (e.g. two at once with THREADS=1 each)
+#             some of "omni prior forward timestep rollout omni-paired" (e.g. two at once with THREADS=1 each)
 #   analysis  the prior pruner's agreement with the prior on held-out episodes, the oracle headroom
-#             around the searched steps, the mask and rollout-feature-similarity figures, the
+#             around the searched steps, the spread of each finished row's actions across noise draws
+#             (eval/sample_spread.py), the mask and rollout-feature-similarity figures, the
 #             pruners' training curves (also of trainings in progress)
 # Every step is skipped when its output exists. The steps are searched on the successful recorded
 # episodes (ALL_EPISODES=1: on all of them, for Push-T, whose policy rarely succeeds); the rollout
@@ -76,8 +79,10 @@ if [[ $parts == *pruners* ]]; then
     case $which in
       omni) reference_pruner "$omni" forward,timestep,rollout; name=$omni ;;
       prior) reference_pruner "$prior" forward,timestep,rollout --prior "$steps"; name=$prior ;;
+      omni-paired) name=${policy}_reference_paired_forward-timestep-rollout_0.93
+        reference_pruner "$name" forward,timestep,rollout --paired ;;
       forward|timestep|rollout) name=${policy}_reference_${which}_0.93; reference_pruner "$name" "$which" ;;
-      *) echo "PRUNERS: unknown pruner $which (omni, prior, forward, timestep, rollout)" >&2; exit 2 ;;
+      *) echo "PRUNERS: unknown pruner $which (omni, omni-paired, prior, forward, timestep, rollout)" >&2; exit 2 ;;
     esac
     evaluate --method "pruner:checkpoints/pruners/$name"
   done
@@ -89,6 +94,13 @@ if [[ $parts == *analysis* ]]; then
   ! trained "$prior" || [ -f "results/robot/agreement_${TASK}_$prior.json" ] \
       || python eval/pruner_agreement.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" \
       --pruner "checkpoints/pruners/$prior" --all-episodes
+  spread=(dense ddim:3:trailing dpm:3 dpm:7 "file:$steps")
+  for name in "$omni" "$prior" "${policy}_reference_paired_forward-timestep-rollout_0.93" \
+      "${policy}_reference_"{forward,timestep,rollout}_0.93; do
+    ! trained "$name" || spread+=("pruner:checkpoints/pruners/$name")
+  done
+  python eval/sample_spread.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" --methods "${spread[@]}" \
+      --threads "${THREADS:-2}" --resume $(all_episodes)
   ! compgen -G "checkpoints/pruners/${policy}_reference_*.json" >/dev/null \
       || python eval/figures.py training-curves --task "$TASK" --checkpoint "$CKPT"
   ! trained "$omni" || [ -f "docs/${policy}_pruning_masks.png" ] \
