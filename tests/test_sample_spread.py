@@ -39,10 +39,10 @@ def test_dense_replays_its_recorded_actions_and_other_draws_differ(tmp_path, one
     assert ddim["l1_same_draw"] > 1e-3  # another sampler on the same noise is not the dense action
     assert json.loads(out.read_text())["methods"].keys() == {"dense", "ddim:2"}
     args = ["--task", "lift", "--checkpoint", str(tmp_path / "policy"), "--trajectories", str(tmp_path / "traj.pt"),
-            "--first-episode", "0", "--draws", "3", "--out", str(out), "--resume"]
-    again = sample_spread.main(args + ["--methods", "dense", "dpm:2"])  # dense is kept, dpm:2 is added
+            "--first-episode", "0", "--out", str(out), "--resume"]
+    again = sample_spread.main(args + ["--draws", "3", "--methods", "dense", "dpm:2"])  # dense kept, dpm:2 added
     assert again["methods"]["dense"] == dense and again["methods"].keys() == {"dense", "ddim:2", "dpm:2"}
-    other = sample_spread.main(args[:-4] + ["2", "--out", str(out), "--resume", "--methods", "dense"])
+    other = sample_spread.main(args + ["--draws", "2", "--methods", "dense"])
     assert other["methods"].keys() == {"dense"} and other["methods"]["dense"]["draws"] == 2  # other draws: anew
     with pytest.raises(SystemExit):
         sample_spread.main(["--task", "lift", "--checkpoint", str(tmp_path / "policy"), "--trajectories",
