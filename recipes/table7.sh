@@ -11,7 +11,9 @@
 #             8 heads, FF 1024, head bias zero, AdamW 1e-4, 20 epochs, batches of 16 full-horizon
 #             episodes, unpaired noise), from scratch for each direction set (forward / timestep /
 #             rollout / all three) and, for all three, from the searched prior; the pruner's
-#             forward/backward in bfloat16 autocast (PRECISION=float32 for full precision); and
+#             forward/backward in bfloat16 autocast where the device has bfloat16 arithmetic (a GPU,
+#             or a CPU with avx512_bf16 / amx_bf16; elsewhere autocast emulates it, about 25x slower)
+#             and in float32 otherwise (PRECISION sets it; a resumed run may change it); and
 #             omni-paired: the omni recipe with the dense call's own noise as target (--paired),
 #             whose loss no longer rewards an action between the modes. A
 #             reference-length training is hours on 2 CPU cores (on a GPU, DEVICE=cuda); each resumes from its state_dir (recipes/lib.sh) after
@@ -65,11 +67,12 @@ fi
 # actions are pixel targets (0-512), whose L1 is hundreds of times larger and would drown the sparsity
 # term, so its pruners take the L1 on the policy's normalised actions, which are in [-1, 1].
 loss_space=$([ "$TASK" = pusht ] && echo normalized || echo raw)
+precision=${PRECISION:-$({ [ -n "${DEVICE:-}" ] || grep -qE 'avx512_bf16|amx_bf16' /proc/cpuinfo; } && echo bfloat16 || echo float32)}
 reference_pruner() {  # NAME DIRECTIONS [ARGS...]: the reference recipe on 96 train / 16 validation episodes
   local name=$1 dirs=$2; shift 2
   trained "$name" || { python eval/train_pruner.py --recipe reference --trajectories "$TRAJ" \
       --checkpoint "$CKPT" --out "checkpoints/pruners/$name" --directions "$dirs" --sparsity 0.93 \
-      --n-train 96 --n-val 16 --precision "${PRECISION:-bfloat16}" --loss-space "$loss_space" \
+      --n-train 96 --n-val 16 --precision "$precision" --loss-space "$loss_space" \
       --threads "${THREADS:-2}" ${DEVICE:+--device "$DEVICE"} \
       --run-dir "$(state_dir "$name")" --resume --all-episodes "$@" && finish_state "$name"; }
 }

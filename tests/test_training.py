@@ -157,6 +157,26 @@ def test_resume_inside_an_epoch_skips_the_trained_groups_and_matches_an_uninterr
     assert [h["val_score"] for h in whole["history"]] == [h["val_score"] for h in cut["history"]]
     assert [h["train_l1"] for h in whole["history"]] == [h["train_l1"] for h in cut["history"]]
     assert cut["partial"] is None
+    assert cut["precision_log"] == [{"epoch": 0, "groups": 0, "precision": "float32"}]
+
+
+def test_a_resume_may_change_the_precision_and_the_change_is_recorded(tmp_path):
+    """A run moved to a machine without fast bfloat16 continues in float32 (or the reverse); the state and
+    the checkpoint say from which epoch and group each precision ran."""
+    def config(**kw):
+        return PrunerTrainingConfig(out=tmp_path / "p", run_dir=tmp_path / "run", directions="timestep",
+                                    sparsity=0.5, epochs=3, lr=0.05, precision="bfloat16", **kw)
+
+    with pytest.raises(Interrupted):  # epoch 1 done; epoch 2 interrupted after two of its four groups
+        _toy_run(config(), interrupt_at_group=(1, 2))
+    trained = []
+    _toy_run(replace(config(resume=True), precision="float32"), trained=trained)
+    assert trained == [(1, 2), (1, 3)] + [(2, g) for g in range(4)]
+    log = [{"epoch": 0, "groups": 0, "precision": "bfloat16"}, {"epoch": 1, "groups": 2, "precision": "float32"}]
+    assert torch.load(tmp_path / "run" / "pruner_state.pt", weights_only=False)["precision_log"] == log
+    assert tts.load_pruner(tmp_path / "p").metadata["precision_log"] == log
+    _toy_run(replace(config(resume=True), precision="float32"))  # finished: no further stretch
+    assert tts.load_pruner(tmp_path / "p").metadata["precision_log"] == log
 
 
 # ---------------------------------------------------------------- config and grids

@@ -44,9 +44,10 @@ __all__ = ["EpochProgress", "GridSource", "PRECISIONS", "PrunerTrainingConfig", 
 # or one "CFTR" string per step
 GridSource = Union[str, Path, torch.Tensor, Sequence[str]]
 
-# options a resumed run must share with the run it continues (the rest may change, e.g. more epochs)
+# options a resumed run must share with the run it continues (the rest may change, e.g. more epochs; the
+# precision too, as a run may move to a machine without fast bfloat16, and each change is recorded)
 _RESUME_MUST_MATCH = ("directions", "sparsity", "lam", "lr", "weight_decay", "batch", "forecast", "train_budget",
-                      "n_train", "seed", "lr_schedule", "clip_grad", "precision", "loss_space", "paired")
+                      "n_train", "seed", "lr_schedule", "clip_grad", "loss_space", "paired")
 PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16}
 
 
@@ -233,6 +234,22 @@ def _check_resume(state: dict, pruner: PrunerModule, config: PrunerTrainingConfi
         raise ValueError(f"{path} holds the training state of a different pruner: {e}") from None
 
 
+def _precision_log(state: Optional[dict], epoch: int, config: PrunerTrainingConfig,
+                   say: Callable[[str], None]) -> list[dict]:
+    """The precision of each stretch of a run: ``[{"epoch", "groups", "precision"}]``, a stretch beginning
+    after ``epoch`` finished epochs and ``groups`` groups of the next; a resume with another precision
+    starts a new stretch."""
+    if state is None:
+        return [{"epoch": 0, "groups": 0, "precision": config.precision}]
+    log = list(state.get("precision_log") or
+               [{"epoch": 0, "groups": 0, "precision": state.get("config", {}).get("precision", "float32")}])
+    if log[-1]["precision"] != config.precision:
+        groups = (state.get("partial") or {}).get("groups", 0)
+        say(f"precision {log[-1]['precision']} -> {config.precision} from epoch {epoch + 1}, group {groups + 1}")
+        log.append({"epoch": epoch, "groups": groups, "precision": config.precision})
+    return log
+
+
 class EpochProgress:
     """Where an epoch stands: ``skip`` groups already trained (their rows in ``rows``, from an
     interrupted run); ``done(rows)`` after each group saves a resumable state."""
@@ -281,6 +298,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         sched.load_state_dict(st["sched"])
         epoch, history, best, best_state = st["epoch"], st["history"], st["best"], st["best_state"]
         say(f"resumed after epoch {epoch}")
+    precision_log = _precision_log(st, epoch, config, say)
 
     def score(row: dict) -> float:
         return row["val_l1"] + config.lam * abs(row["val_sparsity"] - config.sparsity)
@@ -316,7 +334,8 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
             torch.save({"pruner": pruner.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
                         "epoch": done_epochs, "history": history, "best": best, "best_state": best_state,
                         "rng": (rng.bit_generator.state, noise_rng.get_state()), "torch_rng": torch.get_rng_state(),
-                        "pruner_config": asdict(pruner.config), "config": config.to_json(), "partial": mid}, tmp)
+                        "pruner_config": asdict(pruner.config), "config": config.to_json(), "partial": mid,
+                        "precision_log": precision_log}, tmp)
 
     for epoch in range(epoch, config.epochs):
         pruner.train()
@@ -351,6 +370,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         save_state(epoch + 1, None)
         # the best epoch's weights, with the history so far: a usable checkpoint after every epoch
         meta = dict(base, best_epoch=best, history=history, train_seconds=train_seconds,
+                    precision_log=precision_log,
                     pruner_macs_per_call=pruner.macs(steps, memory_tokens))
         current = snapshot()
         pruner.load_state_dict(best_state)

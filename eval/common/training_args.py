@@ -51,7 +51,8 @@ def add_training_args(ap: argparse.ArgumentParser, *, sparsity: float, direction
     ap.add_argument("--clip-grad", type=_clip, default=1.0, help="gradient-norm clip, or 'none'")
     ap.add_argument("--precision", choices=sorted(PRECISIONS), default="float32",
                     help="the pruner's forward/backward in training: float32, or bfloat16 autocast (mixed "
-                         "precision; about 2x faster on CPUs with bfloat16 instructions)")
+                         "precision: about 2x faster on CPUs with avx512_bf16 / amx_bf16, about 25x slower on CPUs "
+                         "without them, where it is emulated); a resumed run may change it (recorded)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--run-dir", type=Path, default=None)
     ap.add_argument("--resume", action="store_true")
