@@ -34,7 +34,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, parse_args, policy_slug, provenance, write_json  # noqa: E402
+from common import REPO, file_sha256, parse_args, policy_slug, provenance, write_json  # noqa: E402
 from common import methods  # noqa: E402
 from common.methods import ROBOT_KINDS, VOCABULARY, Method, parse_method  # noqa: E402
 
@@ -74,7 +74,11 @@ def main(argv=None) -> dict:
     seeds = list(range(args.seed, args.seed + args.episodes))
     done: dict[int, dict] = {}
     latencies: list[float] = []
-    if args.resume and out.exists():
+    pruner_meta = _pruner_metadata(method)
+    if args.resume and out.exists() and not _same_pruner(json.loads(out.read_text()).get("pruner_metadata"),
+                                                         pruner_meta):
+        print(f"{out} was run with other pruner weights (e.g. a training went on since): running it again")
+    elif args.resume and out.exists():
         prev = json.loads(out.read_text())
         done = {e["seed"]: e for e in prev["episodes"]}
         latencies = prev.get("latencies_s", [])
@@ -103,8 +107,8 @@ def main(argv=None) -> dict:
             bar.update(len(wave))
             bar.set_postfix(success=f"{np.mean([e['success'] for e in done.values()]):.2f}")
             summary = acc.summary()
-            write_json(out, report(args, label, seeds, done, latencies, summary, policy))
-    res = report(args, label, seeds, done, latencies, summary or acc.summary(), policy)
+            write_json(out, report(args, label, seeds, done, latencies, summary, policy, pruner_meta))
+    res = report(args, label, seeds, done, latencies, summary or acc.summary(), policy, pruner_meta)
     write_json(out, res)
     print(f"{args.task} {label}: success {res['success_rate']:.3f} over {res['episodes_done']} episodes; "
           f"call latency median {res['latency_ms']['median']:.1f} ms (batch {res['batch']}); wrote {out}")
@@ -115,14 +119,27 @@ def _pruner_metadata(method: Method) -> Optional[dict]:
     """How the pruner of a ``pruner:`` run was trained (from its JSON), for the tables."""
     if method.kind != "pruner":
         return None
-    meta = json.loads(checkpoint_pair(method.path)[1].read_text())
+    weights, info = checkpoint_pair(method.path)
+    meta = json.loads(info.read_text())
     keep = ("n_train_episodes", "sparsity", "paired", "loss_space", "static", "directions", "epochs", "git_sha",
             "command", "pruner_macs_per_call", "best_epoch", "prior")
-    return {"path": str(method.path), "config": meta["config"],
-            **{k: v for k, v in meta.get("metadata", {}).items() if k in keep}}
+    md = meta.get("metadata", {})
+    return {"path": str(method.path), "config": meta["config"], "weights_sha256": file_sha256(weights),
+            **({"epochs_done": len(md["history"])} if "history" in md else {}),
+            **{k: v for k, v in md.items() if k in keep}}
 
 
-def report(args, label, seeds, done, latencies, summary, policy) -> dict:
+def _same_pruner(prev: Optional[dict], now: Optional[dict]) -> bool:
+    """Whether a result's pruner (its ``pruner_metadata``) is the one about to run: the same weights (or,
+    for a result that predates the weights' digest, the same best epoch)."""
+    if prev is None or now is None:
+        return prev is now
+    if "weights_sha256" in prev:
+        return prev["weights_sha256"] == now["weights_sha256"]
+    return prev.get("best_epoch") == now.get("best_epoch")
+
+
+def report(args, label, seeds, done, latencies, summary, policy, pruner_meta: Optional[dict]) -> dict:
     eps = [done[s] for s in seeds if s in done]
     lat = np.array(latencies) if latencies else np.array([np.nan])
     med = float(np.median(lat))
@@ -145,7 +162,7 @@ def report(args, label, seeds, done, latencies, summary, policy) -> dict:
         "hz_definitions": "calls_per_s = 1 / median latency of one (batched) policy call; "
                           "actions_per_s_per_env = n_action_steps / median latency",
         "tts": info,
-        "pruner_metadata": _pruner_metadata(parse_method(args.method, kinds=ROBOT_KINDS, forecast=args.forecast)),
+        "pruner_metadata": pruner_meta,  # read with the weights, before the first episode
         "episodes": eps,
         "latencies_s": latencies,
         "method_spec": args.method,

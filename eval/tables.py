@@ -265,12 +265,21 @@ TABLE7_ROWS = (("dense", "dense"), ("DDIM-7 (leading)", "ddim:7"), ("DDIM-3 (lea
                ("omni (pruner, scratch, paired noise)", "pruner:{p}_reference_paired_forward-timestep-rollout_0.93"))
 
 
-def _pruner_cost(r: dict) -> str:
-    """A pruner row's cost next to the policy: the pruner's MACs per call over a dense call's."""
-    last = (r.get("tts") or {}).get("last_call") or {}
+def _pruner_cost(rs: list[dict]) -> str:
+    """A pruner row's cost next to the policy (the pruner's MACs per call over a dense call's) and, for
+    a pruner whose training had not finished, which of its epochs ran."""
+    last = (rs[0].get("tts") or {}).get("last_call") or {}
     if not last.get("macs_pruner"):
         return ""
-    return f"; pruner MACs {last['macs_pruner'] / last['macs_dense']:.2f}x a dense call's"
+    note = f"; pruner MACs {last['macs_pruner'] / last['macs_dense']:.2f}x a dense call's"
+    metas = [r.get("pruner_metadata") or {} for r in rs]
+    if len({m.get("weights_sha256") for m in metas}) > 1:
+        return note + "; **the seeds ran different pruner weights**"
+    m = metas[0]
+    if m.get("epochs_done") is not None and m["epochs_done"] < m.get("epochs", 0):
+        note += (f"; training in progress: its best epoch ({m['best_epoch']['epoch']}) of the first "
+                 f"{m['epochs_done']} of {m['epochs']}")
+    return note
 
 
 def table7(folder: Path) -> str:
@@ -295,11 +304,11 @@ def table7(folder: Path) -> str:
                 cov, n = pooled(rs, "mean_max_coverage")
                 d = None if pattern == "dense" else paired_score_difference(rs, dense)
                 cells.append(f"coverage {cov:.3f} ({n})" + ("" if d is None else f"; {d[0]:+.3f} ({d[1]:+.3f}, {d[2]:+.3f})")
-                             + _pruner_cost(rs[0]))
+                             + _pruner_cost(rs))
                 continue
             rate, n = pooled(rs)
             paired = "" if pattern == "dense" else "; " + paired_vs_dense(rs, dense).split(" on ")[0]
-            cells.append(f"{rate:.2f} ({n}){paired}{_pruner_cost(rs[0])}")
+            cells.append(f"{rate:.2f} ({n}){paired}{_pruner_cost(rs)}")
         rows.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(rows) + "\n"
 

@@ -391,7 +391,15 @@ def test_train_then_eval_end_to_end_on_a_toy_policy(tmp_path):
     import robot  # the eval report reads the pruner's training metadata from the same pair of files
     from common.methods import parse_method
 
-    assert robot._pruner_metadata(parse_method(f"pruner:{out}"))["n_train_episodes"] == 4
+    meta = robot._pruner_metadata(parse_method(f"pruner:{out}"))
+    assert meta["n_train_episodes"] == 4 and meta["epochs_done"] == 3 and len(meta["weights_sha256"]) == 64
+    # --resume continues a result only with the weights it was run with: a training that went on since
+    # (other weights under the same name) runs again; an older result without the digest compares best epochs
+    assert robot._same_pruner(meta, dict(meta)) and robot._same_pruner(None, None)
+    assert not robot._same_pruner(meta, dict(meta, weights_sha256="0" * 64))
+    assert not robot._same_pruner(None, meta)
+    old = {k: v for k, v in meta.items() if k != "weights_sha256"}
+    assert robot._same_pruner(old, meta) and not robot._same_pruner(dict(old, best_epoch={"epoch": 9}), meta)
     import pruner_agreement
 
     with pytest.raises(ValueError, match="without --prior"):

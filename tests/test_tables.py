@@ -79,12 +79,12 @@ def test_table7_rows_pool_test_seeds_per_policy_and_skip_validation(tmp_path):
 
     import tables
 
-    def write(method, successes, seed, ckpt="checkpoints/lift_mh_dpt", macs_pruner=0.0):
+    def write(method, successes, seed, ckpt="checkpoints/lift_mh_dpt", macs_pruner=0.0, pruner=None):
         eps = [{"seed": seed + i, "success": bool(x)} for i, x in enumerate(successes)]
         doc = {"task": "lift", "checkpoint": ckpt, "method": method, "episodes_requested": len(eps),
                "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
                "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps,
-               "tts": {"last_call": {"macs_dense": 2e9, "macs_pruner": macs_pruner}}}
+               "tts": {"last_call": {"macs_dense": 2e9, "macs_pruner": macs_pruner}}, "pruner_metadata": pruner}
         (tmp_path / f"{method.replace(':', '-')}_{seed}.json").write_text(json.dumps(doc))
 
     assert "No policy" in tables.table7(tmp_path)
@@ -102,6 +102,15 @@ def test_table7_rows_pool_test_seeds_per_policy_and_skip_validation(tmp_path):
     assert row["searched static steps"].startswith("1.00 (4); +0.250 (")
     assert "pruner MACs" not in row["searched static steps"]
     assert row["omni (pruner, scratch)"] == "-"
+    # a pruner evaluated while its training went on says which epoch ran; seeds with other weights are flagged
+    in_progress = {"weights_sha256": "a", "epochs": 20, "epochs_done": 17, "best_epoch": {"epoch": 12}}
+    omni = "pruner:lift-lift_mh_dpt_reference_forward-timestep-rollout_0.93"
+    write(omni, [1, 1, 1, 0], 100000, macs_pruner=1e9, pruner=in_progress)
+    cell = lambda: {r.split(" | ")[0][2:]: r.split(" | ")[1].rstrip(" |") for r in
+                    tables.table7(tmp_path).strip().splitlines()[2:]}["omni (pruner, scratch)"]
+    assert cell().endswith("training in progress: its best epoch (12) of the first 17 of 20")
+    write(omni, [1, 1], 100050, macs_pruner=1e9, pruner=dict(in_progress, weights_sha256="b"))
+    assert "the seeds ran different pruner weights" in cell()
 
 
 def test_table7_shows_push_t_coverage_and_starts_with_the_static_direction_rows(tmp_path):

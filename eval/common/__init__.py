@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
 import os
 import platform
@@ -117,6 +118,15 @@ def add_all_episodes_option(ap) -> None:
     ap.add_argument("--all-episodes", action="store_true",
                     help="use every recorded episode, not only the successful ones (for a policy that rarely "
                          "succeeds, e.g. Push-T's, whose episodes run to the horizon)")
+
+
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of a file's bytes (hex): which weights a result was produced with."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def write_atomic(path: Path, text: str) -> None:
