@@ -34,9 +34,9 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, file_sha256, parse_args, policy_slug, provenance, write_json  # noqa: E402
+from common import REPO, parse_args, policy_slug, provenance, write_json  # noqa: E402
 from common import methods  # noqa: E402
-from common.methods import ROBOT_KINDS, VOCABULARY, Method, parse_method  # noqa: E402
+from common.methods import ROBOT_KINDS, VOCABULARY, Method, parse_method, pruner_weights_sha256  # noqa: E402
 
 import tts  # noqa: E402
 from tts.io import checkpoint_pair  # noqa: E402
@@ -119,12 +119,11 @@ def _pruner_metadata(method: Method) -> Optional[dict]:
     """How the pruner of a ``pruner:`` run was trained (from its JSON), for the tables."""
     if method.kind != "pruner":
         return None
-    weights, info = checkpoint_pair(method.path)
-    meta = json.loads(info.read_text())
+    meta = json.loads(checkpoint_pair(method.path)[1].read_text())
     keep = ("n_train_episodes", "sparsity", "paired", "loss_space", "static", "directions", "epochs", "git_sha",
             "command", "pruner_macs_per_call", "best_epoch", "prior")
     md = meta.get("metadata", {})
-    return {"path": str(method.path), "config": meta["config"], "weights_sha256": file_sha256(weights),
+    return {"path": str(method.path), "config": meta["config"], "weights_sha256": pruner_weights_sha256(method),
             **({"epochs_done": len(md["history"])} if "history" in md else {}),
             **{k: v for k, v in md.items() if k in keep}}
 

@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, add_all_episodes_option, add_replay_options, parse_args, policy_slug, provenance, write_json  # noqa: E402
-from common.methods import ROBOT_KINDS, Method, install_policy, parse_method  # noqa: E402
+from common.methods import ROBOT_KINDS, Method, install_policy, parse_method, pruner_weights_sha256  # noqa: E402
 from robot_suite.replay import replay  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
@@ -105,10 +105,16 @@ def main(argv=None) -> dict:
     if any(res.get(k) != v for k, v in setup.items()):  # another set-up: its methods do not compare
         res = {**setup, "methods": {}}
     for method in methods:
-        if method.label in res["methods"]:
+        weights = pruner_weights_sha256(method)
+        kept = res["methods"].get(method.label)
+        if kept is not None and kept.get("weights_sha256", weights) == weights:
             print(f"{args.task} {method.label}: measured already ({out})")
             continue
+        if kept is not None:
+            print(f"{args.task} {method.label}: measured with other pruner weights, measuring again")
         stats = spread_stats(*sample_draws(policy, method, episodes, args.draws, args.batch))
+        if weights is not None:
+            stats["weights_sha256"] = weights
         stats["provenance"] = provenance(seeds={"noise": f"recorded seed + d * {DRAW_OFFSET}, d = 0..{args.draws - 1}"})
         res["methods"][method.label] = stats
         write_json(out, res)  # a method at a time: an interrupted run keeps what it measured

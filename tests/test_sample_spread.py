@@ -60,3 +60,37 @@ def test_a_fewer_step_sampler_leaves_the_policy_on_its_own_sampler(tmp_path, one
     draws, target = sample_draws(pol, parse_method("ddim:2", kinds=ROBOT_KINDS), episodes, 2, 2)
     assert draws.shape == (2, 4, *target.shape[1:]) and target.shape[0] == 4
     assert (pol.cfg.scheduler, pol.cfg.num_inference_steps) == ("ddpm", 6)
+
+
+def test_resume_measures_a_pruner_again_when_its_weights_changed(tmp_path, one_thread):
+    """A training in progress rewrites its checkpoint under the same name: a kept entry counts only for
+    the weights it was measured with."""
+    import shutil
+
+    import sample_spread
+    import train_pruner
+    from test_pruner import _toy_policy_and_trajectories
+
+    _toy_policy_and_trajectories(tmp_path, [3, 4, 3, 3, 4, 3])
+    common = ["--trajectories", str(tmp_path / "traj.pt"), "--checkpoint", str(tmp_path / "policy"), "--sparsity",
+              "0.5", "--epochs", "1", "--batch", "2", "--n-train", "4", "--n-val", "2", "--hidden", "16"]
+    for seed in (0, 1):
+        train_pruner.main(common + ["--out", str(tmp_path / f"pruner_{seed}"), "--seed", str(seed)])
+    live = tmp_path / "live" / "pruner"
+    live.parent.mkdir()
+
+    def publish(seed):  # the training's checkpoint, rewritten in place
+        for ext in (".json", ".safetensors"):
+            shutil.copy(tmp_path / f"pruner_{seed}{ext}", live.with_suffix(ext))
+
+    args = ["--task", "lift", "--checkpoint", str(tmp_path / "policy"), "--trajectories", str(tmp_path / "traj.pt"),
+            "--first-episode", "4", "--draws", "2", "--batch", "2", "--methods", f"pruner:{live}",
+            "--out", str(tmp_path / "spread.json"), "--resume"]
+    publish(0)
+    first = sample_spread.main(args)["methods"][f"pruner:{live.name}"]
+    assert len(first["weights_sha256"]) == 64
+    assert sample_spread.main(args)["methods"][f"pruner:{live.name}"] == first  # same weights: kept
+    publish(1)
+    second = sample_spread.main(args)["methods"][f"pruner:{live.name}"]
+    assert second["weights_sha256"] != first["weights_sha256"]
+    assert second["provenance"] != first["provenance"] and second["l1_same_draw"] != first["l1_same_draw"]

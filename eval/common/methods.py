@@ -41,7 +41,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Optional
 
-__all__ = ["Method", "Sampler", "parse_method", "install", "install_policy", "ROBOT_KINDS", "IMAGE_KINDS", "VOCABULARY"]
+__all__ = ["Method", "Sampler", "parse_method", "install", "install_policy", "pruner_weights_sha256", "ROBOT_KINDS",
+           "IMAGE_KINDS", "VOCABULARY"]
 
 VOCABULARY = ("dense | ddim:K[:SPACING] | dpm:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | rotating:RHO:DIRECTION | "
               "file:SCHEDULE.json | "
@@ -299,6 +300,18 @@ def install(model: Any, method: Method, *, parallel: Any = "auto", memory_width:
                          f"model's has width {memory_width}: it belongs to another model")
     return tts.accelerate(model, pruner.config.directions, pruner=pruner, sparsity=method.sparsity,
                           forecast=method.forecast, parallel=parallel)
+
+
+def pruner_weights_sha256(method: Method) -> Optional[str]:
+    """The SHA-256 of a ``pruner:`` method's weights file (None for other methods): which weights a result
+    came from, as a training in progress rewrites them under the same name."""
+    if method.kind != "pruner":
+        return None
+    from tts.io import checkpoint_pair
+
+    from . import file_sha256
+
+    return file_sha256(checkpoint_pair(method.path)[0])
 
 
 def install_policy(policy: Any, method: Method, *, parallel: Any = "auto"):
