@@ -93,4 +93,4 @@ def test_resume_measures_a_pruner_again_when_its_weights_changed(tmp_path, one_t
     publish(1)
     second = sample_spread.main(args)["methods"][f"pruner:{live.name}"]
     assert second["weights_sha256"] != first["weights_sha256"]
-    assert second["provenance"] != first["provenance"] and second["l1_same_draw"] != first["l1_same_draw"]
+    assert second["l1_same_draw"] != first["l1_same_draw"]  # measured again, with the other weights

@@ -122,11 +122,8 @@ def add_all_episodes_option(ap) -> None:
 
 def file_sha256(path: Path) -> str:
     """The SHA-256 of a file's bytes (hex): which weights a result was produced with."""
-    h = hashlib.sha256()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def write_atomic(path: Path, text: str) -> None:
