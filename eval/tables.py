@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, write_atomic  # noqa: E402
+from common import REPO, file_sha256, write_atomic  # noqa: E402
 from common.stats import paired_score_difference, paired_vs_dense, policy_of, pooled  # noqa: E402
 from common import frontier  # noqa: E402
 from robot_suite.tasks import TASKS  # noqa: E402
@@ -265,9 +265,10 @@ TABLE7_ROWS = (("dense", "dense"), ("DDIM-7 (leading)", "ddim:7"), ("DDIM-3 (lea
                ("omni (pruner, scratch, paired noise)", "pruner:{p}_reference_paired_forward-timestep-rollout_0.93"))
 
 
-def _pruner_cost(rs: list[dict]) -> str:
+def _pruner_cost(rs: list[dict], checkpoint: Path | None = None) -> str:
     """A pruner row's cost next to the policy (the pruner's MACs per call over a dense call's) and, for
-    a pruner whose training had not finished, which of its epochs ran."""
+    a pruner whose training had not finished, which of its epochs ran. ``checkpoint``: the weights file
+    now under the pruner's name; when its SHA-256 is not the one the results ran, the cell says so."""
     last = (rs[0].get("tts") or {}).get("last_call") or {}
     if not last.get("macs_pruner"):
         return ""
@@ -279,13 +280,18 @@ def _pruner_cost(rs: list[dict]) -> str:
     if m.get("epochs_done") is not None and m["epochs_done"] < m.get("epochs", 0):
         note += (f"; training in progress: its best epoch ({m['best_epoch']['epoch']}) of the first "
                  f"{m['epochs_done']} of {m['epochs']}")
+    if checkpoint is not None and checkpoint.is_file() and m.get("weights_sha256") not in (None, file_sha256(checkpoint)):
+        now = json.loads(checkpoint.with_suffix(".json").read_text()).get("metadata", {})
+        note += (f"; **the checkpoint now holds other weights (its best epoch {now.get('best_epoch', {}).get('epoch', '?')}"
+                 f" after {len(now.get('history', []))} of {now.get('epochs', '?')} epochs), not evaluated yet**")
     return note
 
 
-def table7(folder: Path) -> str:
+def table7(folder: Path, pruners: Path = REPO / "checkpoints" / "pruners") -> str:
     """The paper's Table 7 shape at 93% (recipes/table7.sh): per policy with its static direction rows
     or reference-recipe pruners, on the test seeds, the score and the paired difference to dense on the
-    same episodes: success, or for Push-T (whose policies rarely succeed) the mean best coverage."""
+    same episodes: success, or for Push-T (whose policies rarely succeed) the mean best coverage.
+    ``pruners``: where the pruner rows' checkpoints are (a cell flags results of replaced weights)."""
     runs = complete_runs(folder)
     policies = sorted({pol for pol, m in runs if ("_reference_" in m or m == "rotating:0.93:rollout")
                        and not pol.endswith("validation")})
@@ -296,19 +302,21 @@ def table7(folder: Path) -> str:
         cells = []
         for pol in policies:
             slug = pol.replace(" (", "-").rstrip(")")
-            rs, dense = runs.get((pol, pattern.format(p=slug))), runs.get((pol, "dense"), [])
+            method = pattern.format(p=slug)
+            rs, dense = runs.get((pol, method)), runs.get((pol, "dense"), [])
             if not rs:
                 cells.append("-")
                 continue
+            ckpt = pruners / f"{method.removeprefix('pruner:')}.safetensors" if method.startswith("pruner:") else None
             if rs[0].get("mean_max_coverage") is not None:
                 cov, n = pooled(rs, "mean_max_coverage")
                 d = None if pattern == "dense" else paired_score_difference(rs, dense)
                 cells.append(f"coverage {cov:.3f} ({n})" + ("" if d is None else f"; {d[0]:+.3f} ({d[1]:+.3f}, {d[2]:+.3f})")
-                             + _pruner_cost(rs))
+                             + _pruner_cost(rs, ckpt))
                 continue
             rate, n = pooled(rs)
             paired = "" if pattern == "dense" else "; " + paired_vs_dense(rs, dense).split(" on ")[0]
-            cells.append(f"{rate:.2f} ({n}){paired}{_pruner_cost(rs)}")
+            cells.append(f"{rate:.2f} ({n}){paired}{_pruner_cost(rs, ckpt)}")
         rows.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(rows) + "\n"
 

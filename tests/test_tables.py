@@ -113,6 +113,35 @@ def test_table7_rows_pool_test_seeds_per_policy_and_skip_validation(tmp_path):
     assert "the seeds ran different pruner weights" in cell()
 
 
+def test_table7_flags_results_of_weights_the_checkpoint_no_longer_holds(tmp_path):
+    """A training that goes on after its best epoch was evaluated may replace the weights under the
+    pruner's name: the cell says the checkpoint holds another epoch, until the results run it."""
+    import tables
+    from common import file_sha256
+
+    results, pruners = tmp_path / "results", tmp_path / "pruners"
+    results.mkdir(), pruners.mkdir()
+    name = "lift-lift_mh_dpt_reference_forward-timestep-rollout_0.93"
+    weights = pruners / f"{name}.safetensors"
+    weights.write_bytes(b"epoch 12")
+    (pruners / f"{name}.json").write_text(json.dumps({"metadata": {"best_epoch": {"epoch": 18}, "epochs": 20,
+                                                                    "history": [{}] * 20}}))
+    ran = {"weights_sha256": file_sha256(weights), "epochs": 20, "epochs_done": 17, "best_epoch": {"epoch": 12}}
+    for method, pruner in (("dense", None), (f"pruner:{name}", ran)):
+        doc = {"task": "lift", "checkpoint": "checkpoints/lift_mh_dpt", "method": method, "episodes_requested": 2,
+               "episodes_done": 2, "success_rate": 0.5, "provenance": {"seeds": [100000, 100001]},
+               "episodes": [{"seed": 100000, "success": True}, {"seed": 100001, "success": False}],
+               "tts": {"last_call": {"macs_dense": 2e9, "macs_pruner": 1e9}}, "pruner_metadata": pruner}
+        (results / f"{method.replace(':', '-')}_100000.json").write_text(json.dumps(doc))
+
+    def cell() -> str:
+        rows = tables.table7(results, pruners=pruners).strip().splitlines()[2:]
+        return {r.split(" | ")[0][2:]: r.split(" | ")[1].rstrip(" |") for r in rows}["omni (pruner, scratch)"]
+    assert cell().endswith("training in progress: its best epoch (12) of the first 17 of 20")
+    weights.write_bytes(b"epoch 18")
+    assert cell().endswith("**the checkpoint now holds other weights (its best epoch 18 after 20 of 20 epochs), not evaluated yet**")
+
+
 def test_table7_shows_push_t_coverage_and_starts_with_the_static_direction_rows(tmp_path):
     """A Push-T policy rarely succeeds: its cells give mean best coverage and the paired coverage
     difference to dense; the static rows alone (no pruner trained yet) already make a column."""
