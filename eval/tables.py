@@ -20,6 +20,7 @@ from common import REPO, file_sha256, write_atomic  # noqa: E402
 from common.stats import paired_score_difference, paired_vs_dense, policy_of, pooled  # noqa: E402
 from common import frontier  # noqa: E402
 from robot_suite.tasks import TASKS  # noqa: E402
+from tts.io import checkpoint_pair  # noqa: E402
 
 
 def complete_runs(folder: Path, keep=lambda r: "success_rate" in r) -> dict[tuple[str, str], list[dict]]:
@@ -267,8 +268,8 @@ TABLE7_ROWS = (("dense", "dense"), ("DDIM-7 (leading)", "ddim:7"), ("DDIM-3 (lea
 
 def _pruner_cost(rs: list[dict], checkpoint: Path | None = None) -> str:
     """A pruner row's cost next to the policy (the pruner's MACs per call over a dense call's) and, for
-    a pruner whose training had not finished, which of its epochs ran. ``checkpoint``: the weights file
-    now under the pruner's name; when its SHA-256 is not the one the results ran, the cell says so."""
+    a pruner whose training had not finished, which of its epochs ran. ``checkpoint``: the pruner's
+    checkpoint path (without suffix); when its weights are not the ones the results ran, the cell says so."""
     last = (rs[0].get("tts") or {}).get("last_call") or {}
     if not last.get("macs_pruner"):
         return ""
@@ -280,8 +281,9 @@ def _pruner_cost(rs: list[dict], checkpoint: Path | None = None) -> str:
     if m.get("epochs_done") is not None and m["epochs_done"] < m.get("epochs", 0):
         note += (f"; training in progress: its best epoch ({m['best_epoch']['epoch']}) of the first "
                  f"{m['epochs_done']} of {m['epochs']}")
-    if checkpoint is not None and checkpoint.is_file() and m.get("weights_sha256") not in (None, file_sha256(checkpoint)):
-        now = json.loads(checkpoint.with_suffix(".json").read_text()).get("metadata", {})
+    weights, meta = checkpoint_pair(checkpoint) if checkpoint is not None else (None, None)
+    if weights is not None and weights.is_file() and m.get("weights_sha256") not in (None, file_sha256(weights)):
+        now = json.loads(meta.read_text()).get("metadata", {})
         note += (f"; **the checkpoint now holds other weights (its best epoch {now.get('best_epoch', {}).get('epoch', '?')}"
                  f" after {len(now.get('history', []))} of {now.get('epochs', '?')} epochs), not evaluated yet**")
     return note
@@ -307,7 +309,7 @@ def table7(folder: Path, pruners: Path = REPO / "checkpoints" / "pruners") -> st
             if not rs:
                 cells.append("-")
                 continue
-            ckpt = pruners / f"{method.removeprefix('pruner:')}.safetensors" if method.startswith("pruner:") else None
+            ckpt = pruners / method.removeprefix("pruner:") if method.startswith("pruner:") else None
             if rs[0].get("mean_max_coverage") is not None:
                 cov, n = pooled(rs, "mean_max_coverage")
                 d = None if pattern == "dense" else paired_score_difference(rs, dense)

@@ -118,21 +118,19 @@ def test_table7_flags_results_of_weights_the_checkpoint_no_longer_holds(tmp_path
     pruner's name: the cell says the checkpoint holds another epoch, until the results run it."""
     import tables
     from common import file_sha256
+    from helpers import write_coverage_run
 
     results, pruners = tmp_path / "results", tmp_path / "pruners"
     results.mkdir(), pruners.mkdir()
-    name = "lift-lift_mh_dpt_reference_forward-timestep-rollout_0.93"
+    name = "pusht-pusht_mh_dpt_17k_reference_forward-timestep-rollout_0.93"
     weights = pruners / f"{name}.safetensors"
     weights.write_bytes(b"epoch 12")
     (pruners / f"{name}.json").write_text(json.dumps({"metadata": {"best_epoch": {"epoch": 18}, "epochs": 20,
                                                                     "history": [{}] * 20}}))
     ran = {"weights_sha256": file_sha256(weights), "epochs": 20, "epochs_done": 17, "best_epoch": {"epoch": 12}}
-    for method, pruner in (("dense", None), (f"pruner:{name}", ran)):
-        doc = {"task": "lift", "checkpoint": "checkpoints/lift_mh_dpt", "method": method, "episodes_requested": 2,
-               "episodes_done": 2, "success_rate": 0.5, "provenance": {"seeds": [100000, 100001]},
-               "episodes": [{"seed": 100000, "success": True}, {"seed": 100001, "success": False}],
-               "tts": {"last_call": {"macs_dense": 2e9, "macs_pruner": 1e9}}, "pruner_metadata": pruner}
-        (results / f"{method.replace(':', '-')}_100000.json").write_text(json.dumps(doc))
+    write_coverage_run(results, "dense", [0.5, 0.6])
+    write_coverage_run(results, f"pruner:{name}", [0.1, 0.2], pruner_metadata=ran,
+                       tts={"last_call": {"macs_dense": 2e9, "macs_pruner": 1e9}})
 
     def cell() -> str:
         rows = tables.table7(results, pruners=pruners).strip().splitlines()[2:]
