@@ -14,6 +14,7 @@ from tts.plans import COMPUTE, ROLLOUT, TIMESTEP
 from tts.policy_training import PolicyPrunerTrainingConfig, train_policy_pruner
 from tts.pruner import Pruner, PrunerConfig
 from tts.trajectories import load_trajectories
+from tts.io import device_name
 from tts.training import PrunerTrainingConfig, fit, read_grid
 
 REPO = Path(__file__).resolve().parents[1]
@@ -157,7 +158,7 @@ def test_resume_inside_an_epoch_skips_the_trained_groups_and_matches_an_uninterr
     assert [h["val_score"] for h in whole["history"]] == [h["val_score"] for h in cut["history"]]
     assert [h["train_l1"] for h in whole["history"]] == [h["train_l1"] for h in cut["history"]]
     assert cut["partial"] is None
-    assert cut["precision_log"] == [{"epoch": 0, "groups": 0, "precision": "float32"}]
+    assert cut["precision_log"] == [{"epoch": 0, "groups": 0, "precision": "float32", "device": device_name("cpu")}]
 
 
 def test_a_resume_may_change_the_precision_and_the_change_is_recorded(tmp_path):
@@ -172,11 +173,38 @@ def test_a_resume_may_change_the_precision_and_the_change_is_recorded(tmp_path):
     trained = []
     _toy_run(replace(config(resume=True), precision="float32"), trained=trained)
     assert trained == [(1, 2), (1, 3)] + [(2, g) for g in range(4)]
-    log = [{"epoch": 0, "groups": 0, "precision": "bfloat16"}, {"epoch": 1, "groups": 2, "precision": "float32"}]
+    cpu = device_name("cpu")
+    log = [{"epoch": 0, "groups": 0, "precision": "bfloat16", "device": cpu},
+           {"epoch": 1, "groups": 2, "precision": "float32", "device": cpu}]
     assert torch.load(tmp_path / "run" / "pruner_state.pt", weights_only=False)["precision_log"] == log
     assert tts.load_pruner(tmp_path / "p").metadata["precision_log"] == log
     _toy_run(replace(config(resume=True), precision="float32"))  # finished: no further stretch
     assert tts.load_pruner(tmp_path / "p").metadata["precision_log"] == log
+
+
+def test_a_resume_on_another_device_starts_a_new_stretch(tmp_path):
+    """A training begun on a GPU and continued on a CPU says which groups ran where; a state saved
+    before devices were recorded is not split by the device alone."""
+    config = PrunerTrainingConfig(out=tmp_path / "p", run_dir=tmp_path / "run", directions="timestep",
+                                  sparsity=0.5, epochs=3, lr=0.05)
+    with pytest.raises(Interrupted):
+        _toy_run(config, interrupt_at_group=(1, 2))
+    path = tmp_path / "run" / "pruner_state.pt"
+    state = torch.load(path, weights_only=False)
+    state["precision_log"][0]["device"] = "cuda: NVIDIA H200"  # as a GPU run would have saved it
+    torch.save(state, path)
+    _toy_run(replace(config, resume=True))
+    assert torch.load(path, weights_only=False)["precision_log"] == [
+        {"epoch": 0, "groups": 0, "precision": "float32", "device": "cuda: NVIDIA H200"},
+        {"epoch": 1, "groups": 2, "precision": "float32", "device": device_name("cpu")}]
+    with pytest.raises(Interrupted):
+        _toy_run(replace(config, run_dir=tmp_path / "old"), interrupt_at_group=(1, 2))
+    old = tmp_path / "old" / "pruner_state.pt"
+    state = torch.load(old, weights_only=False)
+    del state["precision_log"][0]["device"]
+    torch.save(state, old)
+    _toy_run(replace(config, run_dir=tmp_path / "old", resume=True))
+    assert torch.load(old, weights_only=False)["precision_log"] == [{"epoch": 0, "groups": 0, "precision": "float32"}]
 
 
 # ---------------------------------------------------------------- config and grids

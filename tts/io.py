@@ -1,13 +1,14 @@
-"""Atomic file writes (results and checkpoints are never left half-written by an interruption), and
-the weights + config file pair of a checkpoint."""
+"""Atomic file writes (results and checkpoints are never left half-written by an interruption), the
+weights + config file pair of a checkpoint, and the name of the device a job runs on (provenance)."""
 from __future__ import annotations
 
 import contextlib
 import os
+import platform
 from pathlib import Path
 from typing import Iterator
 
-__all__ = ["atomic_path", "checkpoint_pair"]
+__all__ = ["atomic_path", "checkpoint_pair", "device_name", "processor_name"]
 
 
 @contextlib.contextmanager
@@ -32,3 +33,24 @@ def checkpoint_pair(path: Path) -> tuple[Path, Path]:
     if path.suffix in (".json", ".safetensors"):
         path = path.with_suffix("")
     return path.with_name(path.name + ".safetensors"), path.with_name(path.name + ".json")
+
+
+def processor_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), else what :func:`platform.processor` says."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def device_name(device) -> str:
+    """``"cpu: <model>"`` or ``"cuda: <GPU name>"`` for a torch device (where a training stretch ran)."""
+    import torch
+
+    device = torch.device(device)
+    if device.type == "cuda":
+        return f"cuda: {torch.cuda.get_device_name(device)}"
+    return f"{device.type}: {processor_name()}" if device.type == "cpu" else device.type

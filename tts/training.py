@@ -33,7 +33,7 @@ from typing import Any, Callable, Mapping, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from .io import atomic_path
+from .io import atomic_path, device_name
 from .plans import COMPUTE, DIRECTIONS, check_directions, check_sparsity, from_tensor
 from .pruner import PrunerModule, PrunerPlan, save_pruner
 from .static_search import steps_grid
@@ -234,19 +234,22 @@ def _check_resume(state: dict, pruner: PrunerModule, config: PrunerTrainingConfi
         raise ValueError(f"{path} holds the training state of a different pruner: {e}") from None
 
 
-def _precision_log(state: Optional[dict], epoch: int, config: PrunerTrainingConfig,
+def _precision_log(state: Optional[dict], epoch: int, config: PrunerTrainingConfig, device: str,
                    say: Callable[[str], None]) -> list[dict]:
-    """The precision of each stretch of a run: ``[{"epoch", "groups", "precision"}]``, a stretch beginning
-    after ``epoch`` finished epochs and ``groups`` groups of the next; a resume with another precision
-    starts a new stretch."""
+    """The precision and device of each stretch of a run: ``[{"epoch", "groups", "precision", "device"}]``,
+    a stretch beginning after ``epoch`` finished epochs and ``groups`` groups of the next; a resume with
+    another precision or on another device (e.g. a GPU's stretch continued on a CPU) starts a new
+    stretch. A stretch saved without a device (older states) is not split by the device alone."""
     if state is None:
-        return [{"epoch": 0, "groups": 0, "precision": config.precision}]
+        return [{"epoch": 0, "groups": 0, "precision": config.precision, "device": device}]
     log = list(state.get("precision_log") or
                [{"epoch": 0, "groups": 0, "precision": state.get("config", {}).get("precision", "float32")}])
-    if log[-1]["precision"] != config.precision:
+    last = log[-1]
+    if last["precision"] != config.precision or last.get("device", device) != device:
         groups = (state.get("partial") or {}).get("groups", 0)
-        say(f"precision {log[-1]['precision']} -> {config.precision} from epoch {epoch + 1}, group {groups + 1}")
-        log.append({"epoch": epoch, "groups": groups, "precision": config.precision})
+        say(f"{last['precision']} on {last.get('device', '?')} -> {config.precision} on {device} "
+            f"from epoch {epoch + 1}, group {groups + 1}")
+        log.append({"epoch": epoch, "groups": groups, "precision": config.precision, "device": device})
     return log
 
 
@@ -298,7 +301,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         sched.load_state_dict(st["sched"])
         epoch, history, best, best_state = st["epoch"], st["history"], st["best"], st["best_state"]
         say(f"resumed after epoch {epoch}")
-    precision_log = _precision_log(st, epoch, config, say)
+    precision_log = _precision_log(st, epoch, config, device_name(next(pruner.parameters()).device), say)
 
     def score(row: dict) -> float:
         return row["val_l1"] + config.lam * abs(row["val_sparsity"] - config.sparsity)

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from tts.io import atomic_path
+from tts.io import atomic_path, processor_name
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -29,18 +29,10 @@ def git_sha() -> str:
 def machine() -> dict[str, Any]:
     import torch
 
-    cpu = platform.processor() or ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     info = {
         "platform": platform.platform(),
         "python": platform.python_version(),
-        "cpu": cpu,
+        "cpu": processor_name(),
         "cpu_count": os.cpu_count(),
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
