@@ -221,10 +221,16 @@ def test_pruner_training_table_shows_the_curve_of_a_training_in_progress(tmp_pat
              "val_reuse_timestep": 0.5, "val_reuse_rollout": 0.11}]
     (tmp_path / "pusht_reference_prior_0.93.json").write_text(json.dumps(
         {"metadata": {"history": hist, "best_epoch": hist[1], "epochs": 20, "val_l1_dense": 0.05}}))
+    stretches = [{"epoch": 0, "groups": 0, "precision": "float32", "device": "cuda: NVIDIA H200"},
+                 {"epoch": 0, "groups": 2, "precision": "float32", "device": "cpu: AMD EPYC"}]
+    (tmp_path / "pusht_reference_omni_0.93.json").write_text(json.dumps(
+        {"metadata": {"history": hist, "best_epoch": hist[0], "epochs": 20, "precision_log": stretches}}))
     (tmp_path / "lift_tts_0.93.json").write_text("{}")  # not a reference-recipe pruner: not read
     table = tables.pruner_training_table(tmp_path)
-    assert ("| `pusht_reference_prior_0.93` | 1 of 20 | 1: 0.0900, 0.610 | - / 0.50 / 0.11 | 0.0500 | 0.93 0.61 | "
+    assert ("| `pusht_reference_prior_0.93` | 1 of 20 | - | 1: 0.0900, 0.610 | - / 0.50 / 0.11 | 0.0500 | 0.93 0.61 | "
             "0.110 0.090 | - 0.50 |") in table
+    assert ("| `pusht_reference_omni_0.93` | 1 of 20 | cuda: NVIDIA H200, float32, from epoch 1 group 1; "
+            "cpu: AMD EPYC, float32, from epoch 1 group 3 | 0: 0.1100, 0.930 |") in table
 
 
 def test_visuomotor_table_joins_success_with_latency_and_the_encoder_share(tmp_path):
