@@ -12,7 +12,8 @@ machine hits all methods alike. Reported per method and batch: median latency an
 dense median of the same trials (``speedup``), computed steps per call. The frontier table and plots
 (eval/tables.py, eval/figures.py) join these ratios with the success rates of eval/robot.py.
 Written atomically to ``results/robot/frontier_latency_<task>[-<policy>].json``; ``--resume``
-keeps the methods and batches already in the file.
+keeps the methods and batches already in the file. ``--device cuda`` times on a GPU (each call
+synchronised); its rows go to ``results/robot/gpu/`` by default, apart from the CPU frontier.
 """
 from __future__ import annotations
 
@@ -26,7 +27,8 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, add_all_episodes_option, parse_args, policy_slug, provenance, write_json  # noqa: E402
+from common import (REPO, add_all_episodes_option, add_device_option, parse_args, policy_slug, provenance,  # noqa: E402
+                    torch_device, write_json)
 from common.methods import ROBOT_KINDS, VOCABULARY, install_policy, parse_method  # noqa: E402
 from common.policy_timing import batch_frames, computed_steps, time_calls  # noqa: E402
 
@@ -48,7 +50,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--resume", action="store_true", help="keep the (method, batch) rows already in --out")
     add_all_episodes_option(ap)
+    add_device_option(ap)
     args = parse_args(ap, argv)
+    device = torch_device(args.device)
     try:
         methods = [parse_method(m, kinds=ROBOT_KINDS) for m in args.methods]
     except ValueError as e:
@@ -56,16 +60,17 @@ def main(argv=None) -> dict:
     labels = [m.label for m in methods]
     if len(set(labels)) != len(labels):
         ap.error(f"a method is listed twice: {labels}")
-    out = args.out or REPO / "results" / "robot" / f"frontier_latency_{policy_slug(args.task, args.checkpoint)}.json"
+    folder = REPO / "results" / "robot" / ("gpu" if device.type == "cuda" else "")
+    out = args.out or folder / f"frontier_latency_{policy_slug(args.task, args.checkpoint)}.json"
     rows: dict[str, dict] = {}
     if args.resume and out.exists():
         rows = {f"{r['method']}@{r['batch']}": r for r in json.loads(out.read_text())["rows"]}
     episodes, _ = load_trajectories(args.trajectories, successful_only=not args.all_episodes)
     pool = episodes[args.first_episode:] or episodes
-    dense = load_policy(args.checkpoint)
+    dense = load_policy(args.checkpoint).to(device)
     policies = {}
     for m in methods:
-        pol = load_policy(args.checkpoint)
+        pol = load_policy(args.checkpoint).to(device)
         policies[m.label] = (pol, install_policy(pol, m, parallel=False))
     for B in args.batch:
         todo = [lab for lab in labels if f"{lab}@{B}" not in rows]
@@ -102,7 +107,7 @@ def main(argv=None) -> dict:
             "provenance": provenance(seeds={"noise": "1000 * trial + frame"}),
             "task": args.task, "checkpoint": str(args.checkpoint), "policy": policy_slug(args.task, args.checkpoint),
             "trajectories": str(args.trajectories), "episodes_from": args.first_episode,
-            "torch_threads": torch.get_num_threads(),
+            "torch_threads": torch.get_num_threads(), "device": str(device),
             "protocol": "per batch size: every method and dense timed on the same windows, order rotated per "
                         "trial (reset, untimed frame 0, timed frames 1..frames); speedup = dense median / "
                         "method median of the same trials; pruners run before step 0 (no overlap thread)",

@@ -3,8 +3,7 @@
 # and no network (e.g. a lent cloud GPU), for BUDGET seconds (default 500):
 #   BUDGET=500 OUT=/tmp/out bash scripts/gpu_train_pruner.sh EVAL_TRAIN_PRUNER_ARGS...
 # The arguments are eval/train_pruner.py's, with --run-dir and --resume (as recipes/table7.sh gives
-# them); --device cuda is added. Wheels in .whl/ (diffusers and what it needs beyond the machine's
-# packages) are installed under /tmp/site first; the package is put on PYTHONPATH from this checkout.
+# them); --device cuda is added. The set-up is scripts/gpu_env.sh's.
 # At the deadline the training is interrupted (its state holds every finished episode group); the
 # state is then split into 15 MB parts under OUT (with the log and the checkpoint JSON) for machines
 # that bring back files of a limited size. Reassemble with: cat OUT/state.part* > RUN_DIR/pruner_state.pt
@@ -12,13 +11,8 @@ set -uo pipefail
 t0=$(date +%s)
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
-if compgen -G ".whl/*.whl" >/dev/null; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-    && export PYTHONPATH=/tmp/site
-fi
-rm -rf /tmp/pkg && mkdir -p /tmp/pkg && cp -r tts /tmp/pkg/tts && cp -r adapters /tmp/pkg/tts/adapters
-export PYTHONPATH=/tmp/pkg${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
-python3 -c "import torch, diffusers, tts.adapters; print('torch', torch.__version__, torch.cuda.get_device_name(0))" || exit 3
+# shellcheck disable=SC1091
+source "$(dirname "$0")/gpu_env.sh" || exit 3
 run_dir= out=
 args=("$@")
 for ((i = 0; i < ${#args[@]} - 1; i++)); do

@@ -17,13 +17,15 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def git_sha() -> str:
+    """HEAD of this checkout (``-dirty`` with uncommitted changes to tracked files); where the checkout
+    is a copy without its ``.git`` (e.g. sent to a GPU machine), ``TTS_GIT_SHA`` if the sender set it."""
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
                                capture_output=True, text=True).stdout.strip()
         return sha + ("-dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+        return os.environ.get("TTS_GIT_SHA") or "unknown"
 
 
 def machine() -> dict[str, Any]:
@@ -65,9 +67,9 @@ def parse_args(ap, argv=None):
 
 
 def add_device_option(ap) -> None:
-    """``--device``: where a trainer runs the policy and the model it trains (``cpu``, ``cuda``, ``cuda:1``)."""
+    """``--device``: where a tool runs the policy (and the model it trains): ``cpu``, ``cuda``, ``cuda:1``."""
     ap.add_argument("--device", default="cpu",
-                    help="torch device of the training: cpu (default) or cuda[:N]")
+                    help="torch device of the policy (and of what is trained): cpu (default) or cuda[:N]")
 
 
 def torch_device(name: str):
