@@ -14,6 +14,7 @@ import re
 import statistics
 import sys
 from pathlib import Path
+from typing import Optional, Sequence
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, file_sha256, write_atomic  # noqa: E402
@@ -355,31 +356,39 @@ def pruner_training_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
-def _versus_fewer_steps(p, points: list, digits: int) -> str:
-    """The last frontier column: a sparse method against the best fewer-step sampler as fast."""
+def _versus_fewer_steps(p, points: list, digits: int, untimed: Sequence[str] = ()) -> str:
+    """The last frontier column: a sparse method against the best fewer-step sampler as fast. A win
+    over the timed samplers while ``untimed`` ones (run on the test seeds, not timed, with at most as
+    many steps) may be as fast is not called a win."""
     if p.family != "sparse":
         return "-"
     vs = frontier.beats_fewer_steps(p, points)
     if vs is None:
         return "no fewer-step sampler as fast"
-    return (f"`{vs[0].method}`: {vs[1]:+.{digits}f} ({vs[2]:+.{digits}f}, {vs[3]:+.{digits}f})"
-            + (" **beats it**" if frontier.is_win(p, vs) else ""))
+    cell = f"`{vs[0].method}`: {vs[1]:+.{digits}f} ({vs[2]:+.{digits}f}, {vs[3]:+.{digits}f})"
+    if not frontier.is_win(p, vs):
+        return cell
+    if untimed:
+        return cell + f"; no verdict: {', '.join(f'`{m}`' for m in untimed)} not timed here"
+    return cell + " **beats it**"
 
 
-def frontier_table(folder: Path) -> str:
+def frontier_table(folder: Path, latency_folder: Optional[Path] = None) -> str:
     """Score (success, or Push-T's mean best coverage) against speed-up over dense per policy and batch
     size (eval/common/frontier.py): every method with test-seed runs and a row in
-    frontier_latency_<policy>.json."""
+    frontier_latency_<policy>.json, read from ``latency_folder`` (default ``folder``; ``folder/gpu``:
+    the latencies timed on a GPU, with the success runs of ``folder``)."""
     rows = ["| policy | batch | method | computed steps | score (episodes) [95% CI] | speed-up vs dense | "
             "ms per call | on the frontier | sparse: minus the best fewer-step sampler at least as fast (paired 95% CI) |",
             "|---|---|---|---|---|---|---|---|---|"]
-    for path in sorted(folder.glob("frontier_latency_*.json")):
+    for path in sorted((latency_folder or folder).glob("frontier_latency_*.json")):
         doc = json.loads(path.read_text())
         policy = doc["task"] if doc["policy"] == doc["task"] else f"{doc['task']} ({Path(doc['checkpoint']).name})"
         for batch in sorted({r["batch"] for r in doc["rows"]}):
-            points = frontier.frontier_points(folder, policy, batch)
+            points = frontier.frontier_points(folder, policy, batch, latency_folder)
             for p in sorted(points, key=lambda q: -q.speedup):
-                versus = _versus_fewer_steps(p, points, 3)
+                untimed = frontier.untimed_samplers(folder, policy, points, p.computed_steps)
+                versus = _versus_fewer_steps(p, points, 3, untimed)
                 steps = "100" if p.method == "dense" else str(p.computed_steps)
                 rows.append(f"| {policy} | {batch} | `{p.method}` | {steps} | {p.metric} {p.score:.3f} ({p.episodes}) "
                             f"[{p.interval[0]:.3f}, {p.interval[1]:.3f}] | {p.speedup:.2f}x | {p.latency_ms:.1f} | "
@@ -697,6 +706,7 @@ def main() -> None:
     docs = REPO / "docs" / "results"
     fill(docs / "robot.md", {"robot": summary_table(robot), "latency": latency_table(robot),
                              "reuse-cost": reuse_cost_table(robot), "frontier": frontier_table(robot),
+                             "gpu-frontier": frontier_table(robot, robot / "gpu"),
                              "agreement": agreement_table(robot), "headroom": headroom_table(robot),
                              "rollout-age": rollout_age_table(robot),
                              "runs": robot_table(robot)})

@@ -75,6 +75,38 @@ def test_frontier_join_dominance_and_the_fewer_steps_verdict(tmp_path):
         ["dense", "ddim", "ddim-trailing", "dpm", "sparse"]
 
 
+def test_a_win_is_no_verdict_while_a_sampler_with_runs_and_no_more_steps_is_untimed(tmp_path):
+    """Latencies timed elsewhere (a GPU's folder) join the same success runs; a sparse point that beats
+    the timed samplers is not called a win while a sampler with test runs and at most as many steps
+    was not timed there."""
+    import tables
+    from common import frontier
+
+    n = 60
+    _run(tmp_path, "dense", [1] * n)
+    _run(tmp_path, "ddim:5", [1] * 45 + [0] * 15)
+    _run(tmp_path, "uniform:0.9:timestep", [1] * 58 + [0] * 2)
+    _run(tmp_path, "dpm:8", [1] * 59 + [0])  # run on the test seeds, not timed on the GPU
+    _run(tmp_path, "dpm:20", [1] * n)  # more steps than the sparse point computes: not its rival
+    gpu = tmp_path / "gpu"
+    gpu.mkdir()
+    rows = [{"method": m, "batch": 1, "latency_ms": 1000 / s, "speedup": s, "dense_ms": 1000.0, "computed_steps": c}
+            for m, s, c in (("ddim:5", 18.0, 5), ("uniform:0.9:timestep", 18.0, 10))]
+    (gpu / "frontier_latency_lift.json").write_text(json.dumps({"task": "lift", "policy": "lift",
+                                                                "checkpoint": "checkpoints/lift_dpt", "rows": rows}))
+    assert frontier.frontier_points(tmp_path, "lift", 1) == []  # no CPU latency file
+    pts = frontier.frontier_points(tmp_path, "lift", 1, gpu)
+    assert frontier.untimed_samplers(tmp_path, "lift", pts, 10) == ["dpm:8"]
+    assert frontier.untimed_samplers(tmp_path, "lift", pts, 5) == []
+    row = next(r for r in tables.frontier_table(tmp_path, gpu).splitlines() if "uniform:0.9" in r)
+    assert "no verdict: `dpm:8` not timed here" in row and "beats it" not in row
+    (gpu / "frontier_latency_lift.json").write_text(json.dumps({"task": "lift", "policy": "lift",
+                                                                "checkpoint": "checkpoints/lift_dpt", "rows": rows + [
+        {"method": "dpm:8", "batch": 1, "latency_ms": 100.0, "speedup": 10.0, "dense_ms": 1000.0, "computed_steps": 8}]}))
+    row = next(r for r in tables.frontier_table(tmp_path, gpu).splitlines() if "uniform:0.9" in r)
+    assert "beats it" in row and "no verdict" not in row  # dpm:8 timed, and slower: ddim:5 is the rival
+
+
 def test_frontier_of_a_coverage_policy_scores_mean_coverage_with_paired_differences(tmp_path):
     """Push-T runs record goal coverage: the frontier scores the mean best coverage per episode, and
     the verdict against fewer steps is the paired coverage difference on the same episodes."""

@@ -17,15 +17,18 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def git_sha() -> str:
-    """HEAD of this checkout (``-dirty`` with uncommitted changes to tracked files); where the checkout
-    is a copy without its ``.git`` (e.g. sent to a GPU machine), ``TTS_GIT_SHA`` if the sender set it."""
+    """HEAD of this checkout (``-dirty`` with uncommitted changes to tracked files). ``TTS_GIT_SHA``,
+    when set, wins: a copy of the checkout sent to another machine (e.g. a GPU's) may carry no
+    ``.git`` or a stale one, and the sender knows which commit it sent."""
+    if os.environ.get("TTS_GIT_SHA"):
+        return os.environ["TTS_GIT_SHA"]
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
                                capture_output=True, text=True).stdout.strip()
         return sha + ("-dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
-        return os.environ.get("TTS_GIT_SHA") or "unknown"
+        return "unknown"
 
 
 def machine() -> dict[str, Any]:

@@ -27,7 +27,7 @@ from typing import Optional
 from .stats import mean_interval, newcombe_paired, paired_counts, paired_score_difference, policy_of, pooled, wilson
 
 __all__ = ["Point", "family", "frontier_points", "image_frontier_points", "on_frontier", "beats_fewer_steps",
-           "is_win"]
+           "is_win", "untimed_samplers"]
 
 _FEW = re.compile(r"(ddim|dpm):(\d+)(?::(\w+))?$")
 
@@ -80,11 +80,12 @@ def _success_runs(folder: Path, policy: str) -> dict[str, list[dict]]:
     return runs
 
 
-def frontier_points(folder: Path, policy: str, batch: int) -> list[Point]:
+def frontier_points(folder: Path, policy: str, batch: int, latency_folder: Optional[Path] = None) -> list[Point]:
     """The methods of ``policy`` (as :func:`policy_of` names it) with both test-seed success runs and a
-    latency row at ``batch`` in ``frontier_latency_<policy>.json``; dense included (speed-up 1)."""
+    latency row at ``batch`` in ``frontier_latency_<policy>.json``; dense included (speed-up 1). The
+    latency file is read from ``latency_folder`` (default ``folder``; e.g. the rows timed on a GPU)."""
     slug = policy.replace(" (", "-").rstrip(")")
-    lat_path = folder / f"frontier_latency_{slug}.json"
+    lat_path = (latency_folder or folder) / f"frontier_latency_{slug}.json"
     if not lat_path.exists():
         return []
     rows = {r["method"]: r for r in json.loads(lat_path.read_text())["rows"] if r["batch"] == batch}
@@ -136,6 +137,16 @@ def on_frontier(p: Point, points: list[Point]) -> bool:
     """No other point is at least as fast and scores as well, and strictly better in one of them."""
     return not any(q is not p and q.speedup >= p.speedup and q.at_least_as_good(p)
                    and (q.speedup > p.speedup or q.score != p.score) for q in points)
+
+
+def untimed_samplers(folder: Path, policy: str, points: list[Point], steps: int) -> list[str]:
+    """The fewer-step samplers of ``policy`` with finished test-seed runs in ``folder`` but no latency
+    row among ``points``, that take at most ``steps`` steps (so would likely be as fast as a sparse call
+    computing ``steps`` steps): a verdict that did not time them is not one."""
+    timed = {q.method for q in points}
+    return sorted((m for m in _success_runs(folder, policy) if family(m) in ("ddim", "ddim-trailing", "dpm")
+                   and m not in timed and int(_FEW.match(m).group(2)) <= steps),
+                  key=lambda m: (family(m), int(_FEW.match(m).group(2))))
 
 
 # Latency medians move by a few percent between runs of the same method: a sampler up to this much
