@@ -238,6 +238,17 @@ def test_pruner_save_load_round_trip_and_mismatch(tmp_path):
         load_pruner(tmp_path / "missing")
 
 
+def test_accelerate_moves_the_pruner_to_the_models_device(monkeypatch):
+    """The pruner reads the model's condition memory, so it must live where the model does (a GPU
+    policy with a pruner loaded on the CPU would fail at its first call)."""
+    pol, pr = small_policy(), _pruner()
+    moved = []
+    monkeypatch.setattr(pr, "to", lambda *a, **k: moved.append(a) or pr)
+    acc = tts.accelerate(pol, pruner=pr)
+    acc.remove()
+    assert moved == [(next(pol.parameters()).device,)]
+
+
 # ---------------------------------------------------------------- engine integration
 def test_pruner_decisions_follow_its_argmax_on_the_condition_memory():
     pol = small_policy(num_steps=10)

@@ -87,7 +87,7 @@ def accelerate(
         switches the pruner to exact-budget mode (that many decisions reuse, ranked by the pruner).
     pruner: a trained :class:`tts.Pruner` or :class:`tts.StaticRouter` (:mod:`tts.policy_training`):
         decisions per sample and call, predicted from the model's condition memory (argmax, as in the paper, unless
-        ``sparsity`` is given).
+        ``sparsity`` is given). It is moved to the model's device (it reads the model's condition memory).
     parallel: run the pruner on a side CUDA stream (GPU) / worker thread (CPU) while step 0 runs;
         ``"auto"``: on CPU only when torch leaves a core idle (see :class:`tts.PrunerPlan`).
     blocks: ``{glob over module names: BlockSpec}`` for blocks tts does not recognise.
@@ -106,6 +106,9 @@ def accelerate(
         missing = [d for d in pruner.config.directions if d not in dirs]
         if missing:
             raise ValueError(f"the pruner reuses along {missing}, which is not in directions={dirs}")
+        weights = next(model.parameters(), None) if isinstance(model, nn.Module) else None
+        if weights is not None:
+            pruner.to(weights.device)
         plan = PrunerPlan(pruner, mode="argmax" if sparsity is None else "budget", sparsity=sparsity,
                           parallel=parallel)
         sparsity = None

@@ -292,9 +292,6 @@ def install(model: Any, method: Method, *, parallel: Any = "auto", memory_width:
         return tts.accelerate(model, directions, plan=plan,
                               forecast=method.forecast if "timestep" in directions else 0)
     pruner = tts.load_pruner(method.path)
-    weights = next(model.parameters(), None)
-    if weights is not None:  # the pruner reads the model's condition memory: on the model's device
-        pruner.to(weights.device)
     trained = int(getattr(pruner, "metadata", {}).get("forecast", 0) or 0)
     if trained != method.forecast:
         raise ValueError(f"{method.path} was trained with --forecast {trained}; evaluate it with the same")
