@@ -36,6 +36,16 @@ def test_frontier_latency_rejects_a_method_listed_twice(tmp_path):
                                "ddim:2"])
 
 
+def test_results_record_the_sent_commit_where_a_copied_checkout_says_otherwise(monkeypatch):
+    """A checkout copied to a GPU machine may carry a stale .git; the sender's TTS_GIT_SHA wins."""
+    from common import git_sha
+
+    monkeypatch.delenv("TTS_GIT_SHA", raising=False)
+    here = git_sha()
+    monkeypatch.setenv("TTS_GIT_SHA", "0123abc")
+    assert git_sha() == "0123abc" != here
+
+
 def _run(folder, method, successes, seed=100000, task="lift"):
     eps = [{"seed": seed + i, "success": bool(s)} for i, s in enumerate(successes)]
     doc = {"task": task, "checkpoint": f"checkpoints/{task}_dpt", "method": method, "episodes_requested": len(eps),

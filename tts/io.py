@@ -6,7 +6,7 @@ import contextlib
 import os
 import platform
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Union
 
 __all__ = ["atomic_path", "checkpoint_pair", "device_name", "processor_name"]
 
@@ -46,7 +46,7 @@ def processor_name() -> str:
     return platform.processor() or "unknown"
 
 
-def device_name(device) -> str:
+def device_name(device: Union[str, "torch.device"]) -> str:
     """``"cpu: <model>"`` or ``"cuda: <GPU name>"`` for a torch device (where a training stretch ran)."""
     import torch
 
