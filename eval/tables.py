@@ -386,9 +386,10 @@ def frontier_table(folder: Path, latency_folder: Optional[Path] = None) -> str:
         policy = doc["task"] if doc["policy"] == doc["task"] else f"{doc['task']} ({Path(doc['checkpoint']).name})"
         for batch in sorted({r["batch"] for r in doc["rows"]}):
             points = frontier.frontier_points(folder, policy, batch, latency_folder)
+            untimed = frontier.untimed_samplers(folder, policy, points)
             for p in sorted(points, key=lambda q: -q.speedup):
-                untimed = frontier.untimed_samplers(folder, policy, points, p.computed_steps)
-                versus = _versus_fewer_steps(p, points, 3, untimed)
+                rivals = [m for m, k in untimed.items() if k <= p.computed_steps]
+                versus = _versus_fewer_steps(p, points, 3, rivals)
                 steps = "100" if p.method == "dense" else str(p.computed_steps)
                 rows.append(f"| {policy} | {batch} | `{p.method}` | {steps} | {p.metric} {p.score:.3f} ({p.episodes}) "
                             f"[{p.interval[0]:.3f}, {p.interval[1]:.3f}] | {p.speedup:.2f}x | {p.latency_ms:.1f} | "

@@ -106,8 +106,7 @@ def test_a_win_is_no_verdict_while_a_sampler_with_runs_and_no_more_steps_is_unti
                                                                 "checkpoint": "checkpoints/lift_dpt", "rows": rows}))
     assert frontier.frontier_points(tmp_path, "lift", 1) == []  # no CPU latency file
     pts = frontier.frontier_points(tmp_path, "lift", 1, gpu)
-    assert frontier.untimed_samplers(tmp_path, "lift", pts, 10) == ["dpm:8"]
-    assert frontier.untimed_samplers(tmp_path, "lift", pts, 5) == []
+    assert list(frontier.untimed_samplers(tmp_path, "lift", pts).items()) == [("dpm:8", 8), ("dpm:20", 20)]
     row = next(r for r in tables.frontier_table(tmp_path, gpu).splitlines() if "uniform:0.9" in r)
     assert "no verdict: `dpm:8` not timed here" in row and "beats it" not in row
     (gpu / "frontier_latency_lift.json").write_text(json.dumps({"task": "lift", "policy": "lift",

@@ -139,14 +139,14 @@ def on_frontier(p: Point, points: list[Point]) -> bool:
                    and (q.speedup > p.speedup or q.score != p.score) for q in points)
 
 
-def untimed_samplers(folder: Path, policy: str, points: list[Point], steps: int) -> list[str]:
+def untimed_samplers(folder: Path, policy: str, points: list[Point]) -> dict[str, int]:
     """The fewer-step samplers of ``policy`` with finished test-seed runs in ``folder`` but no latency
-    row among ``points``, that take at most ``steps`` steps (so would likely be as fast as a sparse call
-    computing ``steps`` steps): a verdict that did not time them is not one."""
+    row among ``points``, with their step counts. A sparse call's win over the timed samplers is no
+    verdict while one of these takes at most as many steps as it computes (it would likely be as fast)."""
     timed = {q.method for q in points}
-    return sorted((m for m in _success_runs(folder, policy) if family(m) in ("ddim", "ddim-trailing", "dpm")
-                   and m not in timed and int(_FEW.match(m).group(2)) <= steps),
-                  key=lambda m: (family(m), int(_FEW.match(m).group(2))))
+    steps = {m: int(_FEW.match(m).group(2)) for m in _success_runs(folder, policy)
+             if family(m) in ("ddim", "ddim-trailing", "dpm") and m not in timed}
+    return dict(sorted(steps.items(), key=lambda item: (family(item[0]), item[1])))
 
 
 # Latency medians move by a few percent between runs of the same method: a sampler up to this much
