@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # A stretch of a resumable pruner training on a GPU machine that has PyTorch but no project install
 # and no network (e.g. a lent cloud GPU), for BUDGET seconds (default 500):
-#   BUDGET=500 OUT=/tmp/out bash scripts/gpu_train_pruner.sh EVAL_TRAIN_PRUNER_ARGS...
+#   BUDGET=500 OUT=FOLDER bash scripts/gpu_train_pruner.sh EVAL_TRAIN_PRUNER_ARGS...
 # The arguments are eval/train_pruner.py's, with --run-dir and --resume (as recipes/table7.sh gives
 # them); --device cuda is added. The set-up is scripts/gpu_env.sh's.
 # At the deadline the training is interrupted (its state holds every finished episode group); the
@@ -9,7 +9,7 @@
 # that bring back files of a limited size. Reassemble with: cat OUT/state.part* > RUN_DIR/pruner_state.pt
 set -uo pipefail
 t0=$(date +%s)
-OUT=${OUT:-/tmp/out}
+OUT=${OUT:-build/gpu/out}
 mkdir -p "$OUT"
 # shellcheck disable=SC1091
 source "$(dirname "$0")/gpu_env.sh" || exit 3
