@@ -1,18 +1,21 @@
 #!/usr/bin/env bash
 # The visuomotor (camera) policy of TASK (default lift): the scripted expert's demonstrations
 # (eval/collect_demos.py, with their MuJoCo states), their camera frames rendered once into robomimic's
-# image layout (eval/render_demos.py: agentview and wrist cameras, 84x84; about 0.1 s per frame on 2
+# image layout (eval/render_demos.py: agentview and wrist cameras, 84x84; about 0.15 s per frame on 2
 # CPU cores), the image DP-T trained on them (eval/train_policy.py --obs-type image: ResNet-18 trunk of
 # width ENCODER_WIDTH, default 16, random 76x76 crops, the proprioception keys; 6000 steps at batch 64
 # (checkpoints/<task>_image_dpt: below the 90% Lift target, see docs/results/visuomotor.md), then MORE_STEPS (default
 # 8000) more from those weights with a fresh learning-rate cycle (checkpoints/<task>_image_dpt_14k);
-# resumable; DEVICE=cuda trains on a GPU), 16 recorded trajectories with their camera windows (the schedule search's
-# calibration calls and the latency tools' observations), the searched 93% steps, and then two stages
-# (PARTS, default success,latency):
-# - success: dense, the searched 93% steps and DDIM-7 / DDIM-3 on the test seeds, rendering every env
-#   step (about 1.5 h per method on 2 shared CPU cores);
+# resumable; DEVICE=cuda trains on a GPU), 112 recorded trajectories with their camera windows (the
+# schedule search's calibration calls, the pruner's 96 training and 16 validation episodes, the
+# latency tools' observations), the searched 93% steps, and then three stages (PARTS, default
+# success,pruner,latency):
+# - success: dense, the searched 93% steps, DDIM-7, DPM-Solver++-7 and DDIM-3 on the test seeds,
+#   rendering every env step (about 1.5 h per method on 2 CPU cores);
+# - pruner: the step-level TTS pruner at 93% (recipes/lib.sh steps_recipe: from the searched steps, 3
+#   epochs on 96 episodes), trained on the recorded camera windows and evaluated like the others;
 # - latency: each of those and uniform 93% timestep reuse against dense at batch 1 and 28, with the
-#   breakdown (image encoder, condition, pruner, steps); run it on a quiet machine.
+#   breakdown (image encoder, condition, pruner, wait, steps); run it on a quiet machine.
 # Every stage is skipped when its output exists. Hours on 2 CPU cores. Then python eval/tables.py
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
@@ -22,7 +25,9 @@ images=data/${TASK}_expert_image.hdf5
 first=checkpoints/${TASK}_image_dpt
 CKPT=${first}_$(( (6000 + ${MORE_STEPS:-8000}) / 1000 ))k
 TRAJ=data/trajectories/$(basename "$CKPT").pt
-steps=results/schedules/${TASK}-$(basename "$CKPT")_steps_0.93.json
+policy=${TASK}-$(basename "$CKPT")
+steps=results/schedules/${policy}_steps_0.93.json
+pruner=${policy}_tts_0.93
 [ -f "$data" ] || python eval/collect_demos.py --task "$TASK" --episodes 100 --seed 0 --out "$data"
 [ -f "$images" ] || python eval/render_demos.py --data "$data" --out "$images" --size 84 --threads "${THREADS:-2}"
 [ -f "$first.json" ] || { python eval/train_policy.py --data "$images" --obs-type image \
@@ -31,15 +36,21 @@ steps=results/schedules/${TASK}-$(basename "$CKPT")_steps_0.93.json
 [ -f "$CKPT.json" ] || { python eval/train_policy.py --data "$images" --obs-type image --init "$first" \
     --encoder-width "${ENCODER_WIDTH:-16}" --steps "${MORE_STEPS:-8000}" --batch 64 --save-every 100 --out "$CKPT" \
     --resume --run-dir "$(state_dir "${CKPT##*/}")" ${DEVICE:+--device "$DEVICE"} --threads "${THREADS:-2}" && finish_state "${CKPT##*/}"; }
-parts=${PARTS:-success,latency}
+parts=${PARTS:-success,pruner,latency}
 [[ $parts != *success* ]] || evaluate --method dense --n-envs 10
-[ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 16 \
+[ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 112 \
     --out "$TRAJ" --resume --threads "${THREADS:-2}"
 search_steps "$steps" 0.93
-methods=("file:$steps" ddim:7 ddim:3)
+methods=("file:$steps" ddim:7 dpm:7 ddim:3)
 if [[ $parts == *success* ]]; then
   for m in "${methods[@]}"; do evaluate --method "$m" --n-envs 10; done
 fi
+if [[ $parts == *pruner* ]]; then
+  # shellcheck disable=SC2046
+  NTRAIN=96 EPOCHS=3 train_named "$pruner" $(steps_recipe 0.93 "$steps")
+  evaluate --method "pruner:checkpoints/pruners/$pruner@0.93" --n-envs 10
+fi
+[ ! -f "checkpoints/pruners/$pruner.json" ] || methods+=("pruner:checkpoints/pruners/$pruner@0.93")
 if [[ $parts == *latency* ]]; then
   for m in "${methods[@]}" uniform:0.93:timestep; do
     python eval/latency.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" --method "$m" \
