@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+import tts
+
 
 @pytest.fixture(scope="module")
 def lift_demos(tmp_path_factory):
@@ -178,3 +180,24 @@ def test_trajectories_of_an_image_policy_carry_its_camera_windows_and_replay(lif
     assert len(json.loads((tmp_path / "steps.json").read_text())["compute_steps"]) == 2 and 0.5 in sched
     with pytest.raises(KeyError, match="no 'agentview_image' frames"):
         obs_dict(policy, torch.as_tensor(ep["obs"][:1]))
+    import train_pruner  # a pruner trains on the recorded camera windows and then serves the image policy
+    from test_image_policy import image_obs
+    from tts.pruner import load_pruner
+
+    train_pruner.main(["--trajectories", str(out), "--checkpoint", str(tmp_path / "img_policy"), "--out",
+                       str(tmp_path / "pruner"), "--sparsity", "0.5", "--epochs", "1", "--batch", "1", "--n-train", "1",
+                       "--n-val", "1", "--hidden", "16", "--all-episodes", "--run-dir", str(tmp_path / "run")])
+    pr = load_pruner(tmp_path / "pruner")
+    assert pr.metadata["n_train_episodes"] == 1 and len(pr.metadata["history"]) == 1
+    encoded = []
+    policy.obs_encoder.register_forward_hook(lambda m, a, o: encoded.append(a[0]["agentview_image"].shape[0]))
+    seen = []  # what the pruner reads: the condition memory built from the one encoding of the call
+    pr.register_forward_pre_hook(lambda m, a: seen.append(a[0].shape))
+    with tts.accelerate(policy, pruner=pr) as acc:
+        for c in range(3):
+            policy.predict_action(image_obs(2, c), generator=torch.Generator().manual_seed(c))
+        calls = acc.summary().calls
+    assert encoded == [2 * 2] * 3  # once per call (2 samples x 2 frames), never inside the loop or for the pruner
+    # calls 1 and 2 (call 0 is dense) on memory [B, K, Tc, D]; the batch-1 one is the MAC count's probe
+    assert [tuple(s[:2]) for s in seen if s[0] == 2] == [(2, 4)] * 2
+    assert calls[-1].timing["pruner"] > 0 and "wait" in calls[-1].timing
