@@ -12,8 +12,8 @@
 # success,pruner,latency):
 # - success: dense, the searched 93% steps, DDIM-7, DPM-Solver++-7 and DDIM-3 on the test seeds,
 #   rendering every env step (about 1.5 h per method on 2 CPU cores);
-# - pruner: the step-level TTS pruner at 93% (recipes/lib.sh steps_recipe: from the searched steps, 3
-#   epochs on 96 episodes), trained on the recorded camera windows and evaluated like the others;
+# - pruner: the step-level TTS pruner at 93% as robot_table.sh trains it (recipes/lib.sh steps_recipe:
+#   from the searched steps, timestep and rollout reuse, 3 epochs on 96 episodes), trained on the recorded camera windows and evaluated like the others;
 # - latency: each of those and uniform 93% timestep reuse against dense at batch 1 and 28, with the
 #   breakdown (image encoder, condition, pruner, wait, steps); run it on a quiet machine.
 # Every stage is skipped when its output exists. Hours on 2 CPU cores. Then python eval/tables.py
@@ -47,7 +47,7 @@ if [[ $parts == *success* ]]; then
 fi
 if [[ $parts == *pruner* ]]; then
   # shellcheck disable=SC2046
-  NTRAIN=96 EPOCHS=3 train_named "$pruner" $(steps_recipe 0.93 "$steps")
+  NTRAIN=96 EPOCHS=3 train_named "$pruner" $(steps_recipe 0.93 "$steps") --directions timestep,rollout
   evaluate --method "pruner:checkpoints/pruners/$pruner@0.93" --n-envs 10
 fi
 [ ! -f "checkpoints/pruners/$pruner.json" ] || methods+=("pruner:checkpoints/pruners/$pruner@0.93")
