@@ -13,7 +13,8 @@
 # - success: dense, the searched 93% steps, DDIM-7, DPM-Solver++-7 and DDIM-3 on the test seeds,
 #   rendering every env step (about 1.5 h per method on 2 CPU cores);
 # - pruner: the step-level TTS pruner at 93% as robot_table.sh trains it (recipes/lib.sh steps_recipe:
-#   from the searched steps, timestep and rollout reuse, 3 epochs on 96 episodes), trained on the recorded camera windows and evaluated like the others;
+#   from the searched steps, timestep and rollout reuse, 3 epochs on 96 episodes), trained on the
+#   recorded camera windows and evaluated like the others;
 # - latency: each of those and uniform 93% timestep reuse against dense at batch 1 and 28, with the
 #   breakdown (image encoder, condition, pruner, wait, steps); run it on a quiet machine.
 # Every stage is skipped when its output exists. Hours on 2 CPU cores. Then python eval/tables.py
