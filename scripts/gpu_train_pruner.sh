@@ -7,7 +7,8 @@
 # At the deadline the training is stopped with SIGTERM, then SIGKILL if it lingers (SIGINT would not do:
 # a job started in the background of a script ignores it); its state holds every finished episode group,
 # written atomically. The state is then split into 15 MB parts under OUT (with the log and the
-# checkpoint JSON) for machines that bring back files of a limited size. Reassemble with: cat OUT/state.part* > RUN_DIR/pruner_state.pt
+# checkpoint JSON) for machines that bring back files of a limited size. Reassemble with:
+#   cat OUT/state.part* > RUN_DIR/pruner_state.pt
 set -uo pipefail
 t0=$(date +%s)
 OUT=${OUT:-build/gpu/out}
