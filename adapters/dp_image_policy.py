@@ -26,7 +26,7 @@ import torch.nn as nn
 from .dp_policy import DiffusionTransformerLowdimPolicy, PolicyConfig
 
 __all__ = ["ImageEncoderConfig", "SpatialSoftmax", "VisualCore", "ObsEncoder", "DiffusionTransformerHybridImagePolicy",
-           "CAMERAS"]
+           "CAMERAS", "hybrid_policy_from_official"]
 
 CAMERAS = ("agentview_image", "robot0_eye_in_hand_image")
 
@@ -35,7 +35,8 @@ CAMERAS = ("agentview_image", "robot0_eye_in_hand_image")
 class ImageEncoderConfig:
     """cameras: observation keys of [.., H, W, 3] uint8 images (robomimic's HWC layout); crop_size:
     the random (training) / centre (test) crop; num_kp: spatial-softmax keypoints; feature_dim: per
-    camera; width: channels of the trunk's first stage (64 = ResNet-18)."""
+    camera; width: channels of the trunk's first stage (64 = ResNet-18); pixel_scale, pixel_offset:
+    the affine map of pixels in [0, 1] the trunk sees (Diffusion Policy's checkpoints use 2, -1)."""
 
     cameras: Sequence[str] = CAMERAS
     image_size: int = 84
@@ -43,6 +44,8 @@ class ImageEncoderConfig:
     num_kp: int = 32
     feature_dim: int = 64
     width: int = 64
+    pixel_scale: float = 1.0
+    pixel_offset: float = 0.0
 
     def __post_init__(self) -> None:
         self.cameras = tuple(self.cameras)
@@ -124,7 +127,7 @@ class ObsEncoder(nn.Module):
         """[N, 3, H, W]: a random crop per image in training mode, the centre crop otherwise."""
         c, (h, w) = self.cfg.crop_size, x.shape[-2:]
         if not self.training:
-            top, left = (h - c) // 2, (w - c) // 2
+            top, left = int(round((h - c) / 2.0)), int(round((w - c) / 2.0))  # torchvision's center_crop
             return x[..., top:top + c, left:left + c]
         n = x.shape[0]
         top = torch.randint(0, h - c + 1, (n,), device=x.device)
@@ -141,6 +144,8 @@ class ObsEncoder(nn.Module):
             if x.shape[-1] != 3:
                 raise ValueError(f"{cam}: expected [N, H, W, 3] images, got {tuple(x.shape)}")
             x = x.permute(0, 3, 1, 2).float() / 255.0
+            if (self.cfg.pixel_scale, self.cfg.pixel_offset) != (1.0, 0.0):
+                x = x * self.cfg.pixel_scale + self.cfg.pixel_offset
             feats.append(self.obs_nets[cam](self.crop(x)))
         return torch.cat(feats, dim=-1)
 
@@ -198,3 +203,90 @@ class DiffusionTransformerHybridImagePolicy(DiffusionTransformerLowdimPolicy):
     def config_dict(self) -> dict:
         """The image encoder's options, for the checkpoint."""
         return {"image_encoder": asdict(self.image_cfg)}
+
+
+_TRANSFORMER_DEFAULTS = dict(n_layer=8, n_cond_layers=0, n_head=4, n_emb=256, p_drop_emb=0.0, p_drop_attn=0.3,
+                             causal_attn=True, time_as_cond=True, obs_as_cond=True)  # Diffusion Policy's hybrid policy
+
+
+def _official_camera_key(rest: str) -> str | None:
+    """Our name for one robomimic ``VisualCore`` parameter (the part after ``obs_nets.<camera>.``); None
+    for the spatial softmax's fixed buffers. robomimic stores each submodule twice: by attribute
+    (``backbone.nets.*``, ``pool.*``) and inside its ``nets`` sequence (backbone, pool, flatten, linear)."""
+    for prefix, ours in (("nets.0.nets.", "backbone."), ("backbone.nets.", "backbone."), ("nets.1.nets.", "pool.nets."),
+                         ("pool.nets.", "pool.nets."), ("nets.3.", "linear.")):
+        if rest.startswith(prefix):
+            return ours + rest[len(prefix):]
+    if rest.split(".")[-1] in ("pos_x", "pos_y", "temperature"):
+        return None
+    raise ValueError(f"unrecognised image encoder parameter {rest!r} (expected robomimic's VisualCore: "
+                     "ResNet18Conv, SpatialSoftmax, Linear)")
+
+
+def hybrid_policy_from_official(cfg: Any, sd: dict) -> DiffusionTransformerHybridImagePolicy:
+    """Diffusion Policy's ``DiffusionTransformerHybridImagePolicy`` checkpoint (run config ``cfg``, state
+    dict ``sd``) as our hybrid policy: the transformer and normalisers exactly, the robomimic encoder
+    renamed (GroupNorm trunks, ``obs_encoder_group_norm=True``). The official condition lists the
+    observation keys' features in ``shape_meta`` order; ours puts the cameras first, so the columns of
+    the transformer's condition embedding are permuted to match."""
+    from .dp_policy import PolicyConfig, load_official_normalizer, official_run_fields
+
+    pol = cfg["policy"]
+    meta = pol["shape_meta"] if "shape_meta" in pol else cfg["shape_meta"]
+    obs_meta = {k: dict(v) for k, v in meta["obs"].items()}
+    cams = [k for k, v in obs_meta.items() if v.get("type", "low_dim") == "rgb"]
+    low = [k for k, v in obs_meta.items() if v.get("type", "low_dim") == "low_dim"]
+    if not cams or len(cams) + len(low) != len(obs_meta):
+        raise ValueError(f"shape_meta obs types must be rgb or low_dim with at least one camera: {obs_meta}")
+    if not pol.get("obs_as_cond", True) or pol.get("pred_action_steps_only", False):
+        raise ValueError("only obs_as_cond=True, pred_action_steps_only=False checkpoints are supported")
+    if not pol.get("obs_encoder_group_norm", False):
+        raise ValueError("the image encoder must use GroupNorm (obs_encoder_group_norm=True); BatchNorm trunks are "
+                         "not supported")
+    first = f"obs_encoder.obs_nets.{cams[0]}."
+    shape = [int(x) for x in obs_meta[cams[0]]["shape"]]
+    crop = pol.get("crop_shape") or shape[1:]
+    if shape[1] != shape[2] or crop[0] != crop[1]:
+        raise ValueError(f"square images and crops only, got {shape} cropped to {list(crop)}")
+    pix = [(float(sd[f"normalizer.params_dict.{c}.scale"].reshape(-1)[0]),
+            float(sd[f"normalizer.params_dict.{c}.offset"].reshape(-1)[0])) for c in cams]
+    if len(set(pix)) != 1:
+        raise ValueError(f"cameras with different pixel normalisers: {dict(zip(cams, pix))}")
+    image_cfg = ImageEncoderConfig(
+        cameras=cams, image_size=shape[1], crop_size=int(crop[0]),
+        num_kp=sd[first + "nets.1.nets.weight"].shape[0], feature_dim=sd[first + "nets.3.weight"].shape[0],
+        width=sd[first + "nets.0.nets.0.weight"].shape[0], pixel_scale=pix[0][0], pixel_offset=pix[0][1])
+    low_dims = [int(np.prod(obs_meta[k]["shape"])) for k in low]
+    action_dim = int(meta["action"]["shape"][0])
+    arch = {k: pol.get(k, v) for k, v in _TRANSFORMER_DEFAULTS.items()}
+    run = official_run_fields(cfg)
+    model = dict(input_dim=action_dim, output_dim=action_dim, horizon=run["horizon"], n_obs_steps=run["n_obs_steps"],
+                 cond_dim=image_cfg.features + sum(low_dims), **arch)
+    policy = DiffusionTransformerHybridImagePolicy(
+        PolicyConfig(model=model, obs_keys=low, obs_dims=low_dims, action_dim=action_dim, **run), image_cfg)
+
+    widths = {k: (image_cfg.feature_dim if k in cams else int(np.prod(v["shape"]))) for k, v in obs_meta.items()}
+    starts = dict(zip(widths, np.cumsum([0] + list(widths.values()))[:-1]))
+    order = torch.tensor([int(starts[k]) + i for k in cams + low for i in range(widths[k])])
+    model_sd = {k[len("model."):]: v for k, v in sd.items() if k.startswith("model.")}
+    if model_sd["cond_obs_emb.weight"].shape[1] != len(order):
+        raise ValueError(f"condition width {model_sd['cond_obs_emb.weight'].shape[1]} != the shape_meta's {len(order)}")
+    model_sd["cond_obs_emb.weight"] = model_sd["cond_obs_emb.weight"][:, order]
+    policy.model.load_state_dict(model_sd)
+
+    enc = {}
+    for k, v in sd.items():
+        if not k.startswith("obs_encoder."):
+            continue
+        cam, rest = k[len("obs_encoder.obs_nets."):].split(".", 1) if k.startswith("obs_encoder.obs_nets.") else (None, k)
+        if cam not in cams:
+            raise ValueError(f"unexpected image encoder parameter {k!r}")
+        if rest.endswith("temperature") and not torch.allclose(v.float(), torch.ones_like(v.float())):
+            raise ValueError(f"{k}: spatial-softmax temperature {v.tolist()} (only 1 is supported)")
+        ours = _official_camera_key(rest)
+        if ours is not None:
+            enc[f"{cam}.{ours}"] = v
+    policy.obs_encoder.obs_nets.load_state_dict(enc)
+    load_official_normalizer(policy.obs_normalizer, sd, low)
+    load_official_normalizer(policy.action_normalizer, sd, ["action"])
+    return policy

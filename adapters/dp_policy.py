@@ -228,27 +228,52 @@ def save_policy(policy: DiffusionTransformerLowdimPolicy, path: Path, metadata: 
         tmp.write_text(json.dumps(meta, indent=2))
 
 
+def official_run_fields(cfg: Any) -> dict:
+    """Horizons and sampler of an official Diffusion Policy run config (top level, else ``policy``)."""
+    pol = cfg["policy"]
+    sched = dict(pol.get("noise_scheduler", {}))
+    get = lambda k: cfg[k] if k in cfg else pol[k]  # noqa: E731
+    train = int(sched.get("num_train_timesteps", 100))
+    return dict(horizon=int(get("horizon")), n_obs_steps=int(get("n_obs_steps")),
+                n_action_steps=int(get("n_action_steps")), num_train_timesteps=train,
+                num_inference_steps=int(pol.get("num_inference_steps") or train))
+
+
+def load_official_normalizer(norm: Normalizer, sd: dict, keys: Sequence[str]) -> None:
+    """Fill ``norm`` from the per-key ``normalizer.params_dict.<key>`` scale/offset of an official
+    state dict, concatenated in ``keys`` order."""
+    if not keys:
+        return
+    for what in ("scale", "offset"):
+        parts = []
+        for k in keys:
+            name = f"normalizer.params_dict.{k}.{what}"
+            if name not in sd:
+                raise ValueError(f"official checkpoint has no {name}")
+            parts.append(sd[name].reshape(-1).float())
+        getattr(norm, what).copy_(torch.cat(parts))
+
+
 def _from_official(payload: dict) -> DiffusionTransformerLowdimPolicy:
     cfg = payload["cfg"]
     cfg = {k: cfg[k] for k in cfg} if not isinstance(cfg, dict) else cfg
+    states = payload["state_dicts"]
+    sd = states.get("ema_model") or states["model"]
+    if "shape_meta" in cfg["policy"] or any(k.startswith("obs_encoder.") for k in sd):
+        from .dp_image_policy import hybrid_policy_from_official
+
+        return hybrid_policy_from_official(cfg, sd)
     pol, task = cfg["policy"], cfg.get("task", {})
     m = dict(pol["model"])
     m.pop("_target_", None)
     model_cfg = {k: m[k] for k in DPTransformerConfig.__dataclass_fields__ if k in m}
-    sched = dict(pol.get("noise_scheduler", {}))
-    states = payload["state_dicts"]
-    sd = states.get("ema_model") or states["model"]
     obs_dim, action_dim = int(cfg.get("obs_dim", task.get("obs_dim"))), int(cfg.get("action_dim", task.get("action_dim")))
     pcfg = PolicyConfig(model=model_cfg, obs_keys=("obs",), obs_dims=(obs_dim,), action_dim=action_dim,
-                        horizon=int(cfg["horizon"]), n_obs_steps=int(cfg["n_obs_steps"]),
-                        n_action_steps=int(cfg["n_action_steps"]),
-                        num_train_timesteps=int(sched.get("num_train_timesteps", 100)),
-                        num_inference_steps=int(pol.get("num_inference_steps") or sched.get("num_train_timesteps", 100)))
+                        **official_run_fields(cfg))
     policy = DiffusionTransformerLowdimPolicy(pcfg)
     policy.model.load_state_dict({k[len("model."):]: v for k, v in sd.items() if k.startswith("model.")})
-    for which, norm in (("obs", policy.obs_normalizer), ("action", policy.action_normalizer)):
-        norm.scale.copy_(sd[f"normalizer.params_dict.{which}.scale"])
-        norm.offset.copy_(sd[f"normalizer.params_dict.{which}.offset"])
+    load_official_normalizer(policy.obs_normalizer, sd, ["obs"])
+    load_official_normalizer(policy.action_normalizer, sd, ["action"])
     return policy
 
 

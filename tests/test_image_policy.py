@@ -142,3 +142,126 @@ def test_image_hdf5_round_trip_keeps_uint8_frames_compressed(tmp_path):
         d = f["data/demo_0/obs/agentview_image"]
         assert d.compression == "gzip" and d.chunks == (1, 32, 32, 3)
         assert f["data/demo_0/obs/robot0_eef_pos"].compression is None
+
+
+class _RoboSoftmax(torch.nn.Module):
+    """robomimic's spatial softmax as its checkpoints store it: ``nets`` (1x1 conv), ``pos_x``/``pos_y``
+    over [-1, 1] (x along the width), ``temperature``; keypoints flattened as (x, y) pairs."""
+
+    def __init__(self, c, h, w, k):
+        super().__init__()
+        self.nets = torch.nn.Conv2d(c, k, 1)
+        px, py = np.meshgrid(np.linspace(-1, 1, w), np.linspace(-1, 1, h))
+        self.register_buffer("pos_x", torch.tensor(px.reshape(1, -1), dtype=torch.float32))
+        self.register_buffer("pos_y", torch.tensor(py.reshape(1, -1), dtype=torch.float32))
+        self.register_buffer("temperature", torch.ones(1))
+        self.k, self.hw = k, h * w
+
+    def forward(self, x):
+        a = torch.softmax(self.nets(x).reshape(-1, self.hw) / self.temperature, dim=-1)
+        xy = torch.cat([(self.pos_x * a).sum(1, keepdim=True), (self.pos_y * a).sum(1, keepdim=True)], 1)
+        return xy.reshape(-1, self.k * 2)
+
+
+class _Trunk(torch.nn.Module):
+    def __init__(self, nets):
+        super().__init__()
+        self.nets = nets
+
+    def forward(self, x):
+        return self.nets(x)
+
+
+class _RoboCore(torch.nn.Module):
+    """robomimic's VisualCore over torchvision's ResNet-18 with BatchNorm swapped for GroupNorm(C // 16),
+    as Diffusion Policy builds it: each submodule by attribute and again in ``nets``."""
+
+    def __init__(self, crop, k, feat):
+        super().__init__()
+        import torchvision
+
+        net = torchvision.models.resnet18(weights=None)
+
+        def swap(m):
+            for name, child in m.named_children():
+                if isinstance(child, torch.nn.BatchNorm2d):
+                    setattr(m, name, torch.nn.GroupNorm(child.num_features // 16, child.num_features))
+                else:
+                    swap(child)
+        swap(net)
+        self.backbone = _Trunk(torch.nn.Sequential(*list(net.children())[:-2]))
+        side = -(-crop // 32)
+        self.pool = _RoboSoftmax(512, side, side, k)
+        self.nets = torch.nn.Sequential(self.backbone, self.pool, torch.nn.Flatten(1), torch.nn.Linear(2 * k, feat))
+
+    def forward(self, x):
+        return self.nets(x)
+
+
+def test_official_hybrid_image_checkpoint_loads_and_computes_the_official_condition(tmp_path):
+    """An official-layout hybrid-image checkpoint (keys interleaved in shape_meta, pixels mapped to
+    [-1, 1]) loads; the loaded policy's denoiser output equals the official encoder + transformer's."""
+    from tts.adapters.diffusion_policy import DPTransformerConfig, TransformerForDiffusion
+
+    size, crop, k, feat = 72, 64, 4, 8
+    meta = {"obs": {"agentview_image": {"shape": [3, size, size], "type": "rgb"},
+                    "robot0_eef_pos": {"shape": [3]},
+                    "robot0_eye_in_hand_image": {"shape": [3, size, size], "type": "rgb"},
+                    "robot0_gripper_qpos": {"shape": [2]}},
+            "action": {"shape": [7]}}
+    cams, low = ["agentview_image", "robot0_eye_in_hand_image"], {"robot0_eef_pos": 3, "robot0_gripper_qpos": 2}
+    torch.manual_seed(1)  # torchvision's initialisation keeps the features input-dependent; peaked keypoint maps
+    cores = torch.nn.ModuleDict({c: _RoboCore(crop, k, feat) for c in cams})
+    for i, c in enumerate(cams):
+        randomize(cores[c].pool, seed=i + 1, std=0.5)
+    arch = dict(n_layer=2, n_head=2, n_emb=32, p_drop_emb=0.0, p_drop_attn=0.1, causal_attn=True, time_as_cond=True,
+                obs_as_cond=True, n_cond_layers=0)
+    ref = randomize(TransformerForDiffusion(DPTransformerConfig(input_dim=7, output_dim=7, horizon=10, n_obs_steps=2,
+                                                                cond_dim=2 * feat + 5, **arch)), seed=5).eval()
+    g = torch.Generator().manual_seed(0)
+    norms = {key: (torch.rand(d, generator=g) + 0.5, torch.randn(d, generator=g)) for key, d in {**low, "action": 7}.items()}
+    norms.update({c: (torch.tensor([2.0]), torch.tensor([-1.0])) for c in cams})
+    sd = {f"model.{n}": v for n, v in ref.state_dict().items()}
+    sd.update({f"obs_encoder.obs_nets.{n}": v for n, v in cores.state_dict().items()})
+    for key, (scale, offset) in norms.items():
+        sd[f"normalizer.params_dict.{key}.scale"], sd[f"normalizer.params_dict.{key}.offset"] = scale, offset
+    assert "obs_encoder.obs_nets.agentview_image.backbone.nets.4.0.bn1.weight" in sd  # the stored layout
+    cfg = {"horizon": 10, "n_obs_steps": 2, "n_action_steps": 8,
+           "policy": {"_target_": "diffusion_policy.policy.diffusion_transformer_hybrid_image_policy."
+                                  "DiffusionTransformerHybridImagePolicy", "shape_meta": meta, "crop_shape": [crop, crop],
+                      "obs_encoder_group_norm": True, "eval_fixed_crop": True, "num_inference_steps": 10,
+                      "noise_scheduler": {"num_train_timesteps": 100}, **arch}}
+    path = tmp_path / "epoch=0100.ckpt"
+    torch.save({"cfg": cfg, "state_dicts": {"model": sd, "ema_model": sd}}, path)
+    pol = load_policy(path)
+    assert isinstance(pol, DiffusionTransformerHybridImagePolicy) and pol.image_cfg.width == 64
+
+    obs = {key: np.random.default_rng(1).normal(size=(3, 2, d)).astype(np.float32) for key, d in low.items()}
+    for i, c in enumerate(cams):
+        obs[c] = np.random.default_rng(2 + i).integers(0, 256, size=(3, 2, size, size, 3), dtype=np.uint8)
+    feats = []
+    with torch.no_grad():
+        for key in meta["obs"]:  # the official encoder: shape_meta order, normalised, centre crop
+            x = torch.as_tensor(obs[key]).reshape(6, *obs[key].shape[2:]).float()
+            scale, offset = norms[key]
+            if key in cams:
+                top = (size - crop) // 2
+                x = (x.permute(0, 3, 1, 2) / 255.0 * scale + offset)[..., top:top + crop, top:top + crop]
+                x = cores[key](x)
+            else:
+                x = x * scale + offset
+            feats.append(x)
+        cond = torch.cat(feats, -1).reshape(3, 2, -1)
+        a, t = torch.randn(3, 10, 7, generator=g), torch.tensor(37)
+        torch.testing.assert_close(pol.model(a, t, pol.condition(obs)), ref(a, t, cond), atol=2e-5, rtol=1e-4)
+    assert torch.equal(pol.action_normalizer.scale, norms["action"][0])
+
+    bad = dict(sd)
+    bad["obs_encoder.obs_nets.agentview_image.nets.1.temperature"] = torch.tensor([2.0])
+    torch.save({"cfg": cfg, "state_dicts": {"model": bad}}, path)
+    with pytest.raises(ValueError, match="temperature"):
+        load_policy(path)
+    cfg["policy"]["obs_encoder_group_norm"] = False
+    torch.save({"cfg": cfg, "state_dicts": {"model": sd}}, path)
+    with pytest.raises(ValueError, match="GroupNorm"):
+        load_policy(path)
