@@ -9,12 +9,12 @@
 # resumable; DEVICE=cuda trains on a GPU), 112 recorded trajectories with their camera windows (the
 # schedule search's calibration calls, the pruner's 96 training and 16 validation episodes, the
 # latency tools' observations), the searched 93% steps, and then three stages (PARTS, default
-# success,pruner,latency):
-# - success: dense, the searched 93% steps, DDIM-7, DPM-Solver++-7 and DDIM-3 on the test seeds,
-#   rendering every env step (about 1.5 h per method on 2 CPU cores);
+# pruner,success,latency):
 # - pruner: the step-level TTS pruner at 93% as robot_table.sh trains it (recipes/lib.sh steps_recipe:
 #   from the searched steps, timestep and rollout reuse, 3 epochs on 96 episodes), trained on the
-#   recorded camera windows and evaluated like the others;
+#   recorded camera windows;
+# - success: dense, the searched 93% steps, DDIM-7, DPM-Solver++-7, DDIM-3 and the pruner (once
+#   trained) on the test seeds, rendering every env step (about 1.5 h per method on 2 CPU cores);
 # - latency: each of those and uniform 93% timestep reuse against dense at batch 1 and 28, with the
 #   breakdown (image encoder, condition, pruner, wait, steps); run it on a quiet machine.
 # Every stage is skipped when its output exists. Hours on 2 CPU cores. Then python eval/tables.py
@@ -37,21 +37,18 @@ pruner=${policy}_tts_0.93
 [ -f "$CKPT.json" ] || { python eval/train_policy.py --data "$images" --obs-type image --init "$first" \
     --encoder-width "${ENCODER_WIDTH:-16}" --steps "${MORE_STEPS:-8000}" --batch 64 --save-every 100 --out "$CKPT" \
     --resume --run-dir "$(state_dir "${CKPT##*/}")" ${DEVICE:+--device "$DEVICE"} --threads "${THREADS:-2}" && finish_state "${CKPT##*/}"; }
-parts=${PARTS:-success,pruner,latency}
+parts=${PARTS:-pruner,success,latency}
 [[ $parts != *success* ]] || evaluate --method dense --n-envs 10
 [ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 112 \
     --out "$TRAJ" --resume --threads "${THREADS:-2}"
 search_steps "$steps" 0.93
 methods=("file:$steps" ddim:7 dpm:7 ddim:3)
+# shellcheck disable=SC2046
+[[ $parts != *pruner* ]] || NTRAIN=96 EPOCHS=3 train_named "$pruner" $(steps_recipe 0.93 "$steps") --directions timestep,rollout
+[ ! -f "checkpoints/pruners/$pruner.json" ] || methods+=("pruner:checkpoints/pruners/$pruner@0.93")
 if [[ $parts == *success* ]]; then
   for m in "${methods[@]}"; do evaluate --method "$m" --n-envs 10; done
 fi
-if [[ $parts == *pruner* ]]; then
-  # shellcheck disable=SC2046
-  NTRAIN=96 EPOCHS=3 train_named "$pruner" $(steps_recipe 0.93 "$steps") --directions timestep,rollout
-  evaluate --method "pruner:checkpoints/pruners/$pruner@0.93" --n-envs 10
-fi
-[ ! -f "checkpoints/pruners/$pruner.json" ] || methods+=("pruner:checkpoints/pruners/$pruner@0.93")
 if [[ $parts == *latency* ]]; then
   for m in "${methods[@]}" uniform:0.93:timestep; do
     python eval/latency.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" --method "$m" \
