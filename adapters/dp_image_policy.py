@@ -36,7 +36,8 @@ class ImageEncoderConfig:
     """cameras: observation keys of [.., H, W, 3] uint8 images (robomimic's HWC layout); crop_size:
     the random (training) / centre (test) crop; num_kp: spatial-softmax keypoints; feature_dim: per
     camera; width: channels of the trunk's first stage (64 = ResNet-18); pixel_scale, pixel_offset:
-    the affine map of pixels in [0, 1] the trunk sees (Diffusion Policy's checkpoints use 2, -1)."""
+    the affine map of pixels in [0, 1] the trunk sees (Diffusion Policy's checkpoints use 2, -1);
+    feature_relu: a ReLU on each camera's features (robomimic's ObservationEncoder applies one)."""
 
     cameras: Sequence[str] = CAMERAS
     image_size: int = 84
@@ -46,6 +47,7 @@ class ImageEncoderConfig:
     width: int = 64
     pixel_scale: float = 1.0
     pixel_offset: float = 0.0
+    feature_relu: bool = False
 
     def __post_init__(self) -> None:
         self.cameras = tuple(self.cameras)
@@ -146,7 +148,8 @@ class ObsEncoder(nn.Module):
             x = x.permute(0, 3, 1, 2).float() / 255.0
             if (self.cfg.pixel_scale, self.cfg.pixel_offset) != (1.0, 0.0):
                 x = x * self.cfg.pixel_scale + self.cfg.pixel_offset
-            feats.append(self.obs_nets[cam](self.crop(x)))
+            f = self.obs_nets[cam](self.crop(x))
+            feats.append(torch.relu(f) if self.cfg.feature_relu else f)
         return torch.cat(feats, dim=-1)
 
 
@@ -226,7 +229,9 @@ def _official_camera_key(rest: str) -> str | None:
 def hybrid_policy_from_official(cfg: Any, sd: dict) -> DiffusionTransformerHybridImagePolicy:
     """Diffusion Policy's ``DiffusionTransformerHybridImagePolicy`` checkpoint (run config ``cfg``, state
     dict ``sd``) as our hybrid policy: the transformer and normalisers exactly, the robomimic encoder
-    renamed (GroupNorm trunks, ``obs_encoder_group_norm=True``). The official condition lists the
+    renamed (GroupNorm trunks, ``obs_encoder_group_norm=True``), with robomimic's ReLU on each camera's
+    features; test time takes the centre crop (``eval_fixed_crop=True``; without it the official policy
+    crops at random at test time too). The official condition lists the
     observation keys' features in ``shape_meta`` order; ours puts the cameras first, so the columns of
     the transformer's condition embedding are permuted to match."""
     from .dp_policy import PolicyConfig, load_official_normalizer, official_run_fields
@@ -255,7 +260,8 @@ def hybrid_policy_from_official(cfg: Any, sd: dict) -> DiffusionTransformerHybri
     image_cfg = ImageEncoderConfig(
         cameras=cams, image_size=shape[1], crop_size=int(crop[0]),
         num_kp=sd[first + "nets.1.nets.weight"].shape[0], feature_dim=sd[first + "nets.3.weight"].shape[0],
-        width=sd[first + "nets.0.nets.0.weight"].shape[0], pixel_scale=pix[0][0], pixel_offset=pix[0][1])
+        width=sd[first + "nets.0.nets.0.weight"].shape[0], pixel_scale=pix[0][0], pixel_offset=pix[0][1],
+        feature_relu=True)
     low_dims = [int(np.prod(obs_meta[k]["shape"])) for k in low]
     action_dim = int(meta["action"]["shape"][0])
     arch = {k: pol.get(k, v) for k, v in _TRANSFORMER_DEFAULTS.items()}

@@ -247,7 +247,7 @@ def test_official_hybrid_image_checkpoint_loads_and_computes_the_official_condit
             if key in cams:
                 top = (size - crop) // 2
                 x = (x.permute(0, 3, 1, 2) / 255.0 * scale + offset)[..., top:top + crop, top:top + crop]
-                x = cores[key](x)
+                x = torch.relu(cores[key](x))  # robomimic's ObservationEncoder: ReLU on each camera's features
             else:
                 x = x * scale + offset
             feats.append(x)
