@@ -427,7 +427,8 @@ def visuomotor_table(folder: Path) -> str:
     policies = {p for p, _ in runs}
     for path in sorted(folder.glob("latency_*.json")):
         r = json.loads(path.read_text())
-        if r.get("reference", "dense") == "dense" and policy_of(r) in policies:
+        image = policy_of(r) in policies or any("image_encoder_ms" in row for row in r["rows"])
+        if r.get("reference", "dense") == "dense" and image:
             timed[(policy_of(r), r["method"])] = r
     rows = ["| policy | method | success (episodes) | vs dense: difference (95% CI) on the same episodes | batch "
             "| dense ms | method ms | speed-up | image encoder ms: dense / method (share of the call) "
