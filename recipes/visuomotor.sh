@@ -46,7 +46,7 @@ methods=("file:$steps" ddim:7 dpm:7 ddim:3)
 # shellcheck disable=SC2046
 [[ $parts != *pruner* ]] || NTRAIN=96 EPOCHS=3 train_named "$pruner" $(steps_recipe 0.93 "$steps") --directions timestep,rollout \
     --all-episodes
-[ ! -f "checkpoints/pruners/$pruner.json" ] || methods+=("pruner:checkpoints/pruners/$pruner@0.93")
+if trained "$pruner"; then methods+=("pruner:checkpoints/pruners/$pruner@0.93"); fi
 if [[ $parts == *success* ]]; then
   for m in "${methods[@]}"; do evaluate --method "$m" --n-envs 10; done
 fi
