@@ -23,7 +23,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from .dp_policy import DiffusionTransformerLowdimPolicy, PolicyConfig
+from .dp_policy import DiffusionTransformerLowdimPolicy, PolicyConfig, load_official_normalizer, official_run_fields
 
 __all__ = ["ImageEncoderConfig", "SpatialSoftmax", "VisualCore", "ObsEncoder", "DiffusionTransformerHybridImagePolicy",
            "CAMERAS", "hybrid_policy_from_official"]
@@ -234,8 +234,6 @@ def hybrid_policy_from_official(cfg: Any, sd: dict) -> DiffusionTransformerHybri
     crops at random at test time too). The official condition lists the
     observation keys' features in ``shape_meta`` order; ours puts the cameras first, so the columns of
     the transformer's condition embedding are permuted to match."""
-    from .dp_policy import PolicyConfig, load_official_normalizer, official_run_fields
-
     pol = cfg["policy"]
     meta = pol["shape_meta"] if "shape_meta" in pol else cfg["shape_meta"]
     obs_meta = {k: dict(v) for k, v in meta["obs"].items()}
