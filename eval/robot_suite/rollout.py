@@ -11,7 +11,7 @@ import torch
 
 from tts.trajectories import camera_keys
 
-from .tasks import TASKS, camera_obs, low_dim_obs, make_env, reset_env
+from .tasks import TASKS, camera_obs, low_dim_obs, make_env, reset_env, step_unobserved
 
 __all__ = ["noise_seed", "run_wave", "policy_cameras", "make_policy_envs"]
 
@@ -86,11 +86,17 @@ def run_wave(policy, envs, seeds, task, generator, record: bool = False,
                                      *((k, obs[k][e]) for k in cam_keys)):
                         traj[e][key].append(val)
         for a_i in range(actions.shape[1]):
+            # only the last n_obs_steps observations of a chunk reach the next call: camera envs skip
+            # rendering the others (the frames that are read stay exact)
+            read = not cams or a_i >= actions.shape[1] - cfg.n_obs_steps
             for e in range(n):
                 if done(e):
                     continue  # finished envs keep their last observation (batch size stays constant)
-                raw, _, _, _ = envs[e].step(actions[e, a_i])
-                hist[e].append(observe(raw))
+                if read:
+                    raw, _, _, _ = envs[e].step(actions[e, a_i])
+                    hist[e].append(observe(raw))
+                else:
+                    step_unobserved(envs[e], actions[e, a_i])
                 steps[e] += 1
                 coverage[e] = max(coverage[e], float(getattr(envs[e], "coverage", 0.0)))
                 if envs[e]._check_success():

@@ -20,7 +20,7 @@ import numpy as np
 from .pusht import PUSHT_OBS_KEYS, PushTScene
 
 __all__ = ["TASKS", "TaskConfig", "OBS_KEYS", "CAMERAS", "make_env", "reset_env", "low_dim_obs", "camera_obs",
-           "render_state", "env_args", "task_of_env", "sim_state"]
+           "render_state", "env_args", "task_of_env", "sim_state", "step_unobserved"]
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 CAMERAS = ("agentview", "robot0_eye_in_hand")  # robomimic's image datasets: obs/<camera>_image
@@ -147,6 +147,39 @@ def camera_obs(raw: dict, cameras: Sequence[str]) -> dict[str, np.ndarray]:
     if missing:
         raise KeyError(f"the env renders no {missing} camera: make it with make_env(..., cameras=...)")
     return {f"{c}_image": np.ascontiguousarray(raw[f"{c}_image"][::-1]) for c in cameras}
+
+
+def step_unobserved(env, action: np.ndarray) -> tuple:
+    """``env.step(action)`` without rendering its cameras: a step whose frames nobody reads.
+
+    Robosuite samples a camera on its own clock, inside the physics substeps. Here each camera
+    observable keeps that clock but hands back its previous frame instead of rendering, so the
+    physics and every later step's frames are those of a run that rendered every step (tested), and
+    the step's own camera frames are stale: read only its low-dim keys. Rendering is about 65 ms per
+    84x84 camera frame on a CPU, most of a camera env's step."""
+    gates = []
+    for name, observable in env._observables.items():
+        if name.endswith("_image"):
+            render = observable._sensor
+            if not hasattr(render, "rendering"):  # wrapped once per observable (a hard reset makes new ones)
+                render = observable._sensor = _gated_camera(observable, render)
+            gates.append(render)
+    for g in gates:
+        g.rendering = False
+    try:
+        return env.step(action)
+    finally:
+        for g in gates:
+            g.rendering = True
+
+
+def _gated_camera(observable, render):
+    def sensor(obs_cache):
+        return render(obs_cache) if sensor.rendering else observable._current_observed_value
+
+    sensor.rendering = True
+    sensor.__modality__ = render.__modality__
+    return sensor
 
 
 def render_state(env, state: np.ndarray) -> dict:
