@@ -15,7 +15,7 @@
 #   windows of the successful episodes (98 of the 112: 82 train, 16 validation; a failed episode
 #   runs 50 calls against about 7, and a lockstep group runs to its longest episode);
 # - success: dense, the searched 93% steps, DDIM-7, DPM-Solver++-7, DDIM-3 and the pruner (once
-#   trained) on the test seeds, rendering every env step (about 1.5 h per method on 2 CPU cores);
+#   trained) on the test seeds, rendering the frames each call reads (about 0.5-1.5 h per method on 2 CPU cores);
 # - latency: each of those and uniform 93% timestep reuse against dense at batch 1 and 28, with the
 #   breakdown (image encoder, condition, pruner, wait, steps); run it on a quiet machine.
 # Every stage is skipped when its output exists. Hours on 2 CPU cores. Then python eval/tables.py
