@@ -46,6 +46,19 @@ def test_results_record_the_sent_commit_where_a_copied_checkout_says_otherwise(m
     assert git_sha() == "0123abc" != here
 
 
+def test_results_record_the_commit_a_run_started_from_not_a_later_one(monkeypatch):
+    """A long evaluation writes its rows while new commits land; the SHA it records is the code it
+    runs, read when it started."""
+    import subprocess
+
+    from common import git_sha
+
+    monkeypatch.delenv("TTS_GIT_SHA", raising=False)
+    started = git_sha()
+    monkeypatch.setattr(subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 0, "f" * 40 + "\n", ""))
+    assert git_sha() == started and not started.startswith("f" * 40)
+
+
 def _run(folder, method, successes, seed=100000, task="lift"):
     eps = [{"seed": seed + i, "success": bool(s)} for i, s in enumerate(successes)]
     doc = {"task": task, "checkpoint": f"checkpoints/{task}_dpt", "method": method, "episodes_requested": len(eps),

@@ -17,11 +17,14 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def git_sha() -> str:
-    """HEAD of this checkout (``-dirty`` with uncommitted changes to tracked files). ``TTS_GIT_SHA``,
-    when set, wins: a copy of the checkout sent to another machine (e.g. a GPU's) may carry no
-    ``.git`` or a stale one, and the sender knows which commit it sent."""
-    if os.environ.get("TTS_GIT_SHA"):
-        return os.environ["TTS_GIT_SHA"]
+    """HEAD of this checkout when this process started, i.e. the code it runs (``-dirty`` with
+    uncommitted changes to tracked files); commits made while a long run goes on do not change it.
+    ``TTS_GIT_SHA``, when set, wins: a copy of the checkout sent to another machine (e.g. a GPU's) may
+    carry no ``.git`` or a stale one, and the sender knows which commit it sent."""
+    return os.environ.get("TTS_GIT_SHA") or _SHA_AT_START
+
+
+def _head() -> str:
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
@@ -29,6 +32,9 @@ def git_sha() -> str:
         return sha + ("-dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+
+
+_SHA_AT_START = _head()
 
 
 def machine() -> dict[str, Any]:
