@@ -208,7 +208,7 @@ def test_a_camera_rollout_renders_only_the_frames_the_next_call_reads(lift_demos
     n_obs_steps of each action chunk): counted, and the windows every call reads are the frames of
     the same episode rendered at every step."""
     import robosuite.utils.binding_utils as binding
-    from robot_suite.rollout import make_policy_envs, run_wave
+    from robot_suite.rollout import make_policy_envs, policy_cameras, run_wave
     from robot_suite.tasks import camera_obs, reset_env
     from test_image_policy import image_policy
 
@@ -217,6 +217,7 @@ def test_a_camera_rollout_renders_only_the_frames_the_next_call_reads(lift_demos
     monkeypatch.setattr(binding.MjSim, "render", lambda self, *a, **k: renders.append(1) or real_render(self, *a, **k))
     policy = image_policy(steps=2)
     chunk, window = policy.cfg.n_action_steps, policy.cfg.n_obs_steps
+    cams = policy_cameras(policy)
     env = make_policy_envs(policy, "lift", 1)[0]
     renders.clear()
     (out,), _ = run_wave(policy, [env], [7], "lift", None, record=True, horizon=2 * chunk)
@@ -225,13 +226,13 @@ def test_a_camera_rollout_renders_only_the_frames_the_next_call_reads(lift_demos
     assert len(traj["action"]) == 2 and not out["success"]
 
     renders.clear()  # the reference: the same episode, every step rendered and observed
-    frames = [camera_obs(reset_env(env, 7), ["agentview", "robot0_eye_in_hand"])]
+    frames = [camera_obs(reset_env(env, 7), cams)]
     for call in range(2):
-        for k in ("agentview_image", "robot0_eye_in_hand_image"):
+        for k in (f"{c}_image" for c in cams):
             expected = np.stack([f[k] for f in ([frames[0]] * window + frames)[-window:]])
             np.testing.assert_array_equal(traj[k][call], expected)
         for a in traj["action"][call]:
-            frames.append(camera_obs(env.step(a)[0], ["agentview", "robot0_eye_in_hand"]))
+            frames.append(camera_obs(env.step(a)[0], cams))
     every_step = len(renders)
     env.close()
-    assert every_step - skipping == 2 * 2 * (chunk - window)  # 2 cameras x 2 chunks x the unread steps
+    assert len(cams) == 2 and every_step - skipping == len(cams) * 2 * (chunk - window)  # x 2 chunks x unread steps
