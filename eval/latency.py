@@ -17,6 +17,10 @@ total) from ``summary()``.
 ``--reference`` replaces dense by another method as the baseline timed alongside, e.g. ``ddim:7``, or
 ``ddim:matched``: DDIM with as many steps as the accelerated call computes (per sample, rounded), the
 cost of the reuse steps made visible (``ratio`` = accelerated / reference latency).
+
+``--device cuda`` times on a GPU (each call synchronised; the pruner runs on a side CUDA stream beside
+step 0 unless ``--parallel off``); its rows go to ``results/robot/gpu/`` by default, apart from the CPU
+rows.
 """
 from __future__ import annotations
 
@@ -30,7 +34,8 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, add_all_episodes_option, parse_args, policy_slug, provenance, write_json  # noqa: E402
+from common import (REPO, add_all_episodes_option, add_device_option, parse_args, policy_slug, provenance,  # noqa: E402
+                    torch_device, write_json)
 from common import methods  # noqa: E402
 from common.methods import ROBOT_KINDS, VOCABULARY, parse_method  # noqa: E402
 from common.policy_timing import batch_frames, computed_steps, time_calls, timed_image_encoder  # noqa: E402
@@ -58,7 +63,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--resume", action="store_true", help="skip when the result file exists")
     add_all_episodes_option(ap)
+    add_device_option(ap)
     args = parse_args(ap, argv)
+    device = torch_device(args.device)
     method = parse_method(args.method, kinds=ROBOT_KINDS, forecast=args.forecast)
     matched = args.reference == "ddim:matched"
     reference = None if args.reference == "dense" or matched else parse_method(args.reference, kinds=ROBOT_KINDS)
@@ -67,14 +74,14 @@ def main(argv=None) -> dict:
     if args.reference != "dense":
         suffix += "_vs_" + ("ddim-matched" if matched else reference.slug)
     name = f"latency_{policy_slug(args.task, args.checkpoint)}_{method.slug}{suffix}.json"
-    out_path = args.out or REPO / "results" / "robot" / name
+    out_path = args.out or REPO / "results" / "robot" / ("gpu" if device.type == "cuda" else "") / name
     if args.resume and out_path.exists():
         print(f"[skip] {out_path} exists")
         return json.loads(out_path.read_text())
     episodes, _ = load_trajectories(args.trajectories, successful_only=not args.all_episodes)
     pool = episodes[args.first_episode:] or episodes
-    dense = load_policy(args.checkpoint)
-    fast = load_policy(args.checkpoint)
+    dense = load_policy(args.checkpoint).to(device)
+    fast = load_policy(args.checkpoint).to(device)
     acc = methods.install_policy(fast, method, parallel={"auto": "auto", "on": True, "off": False}[args.parallel])
     ref_acc = methods.install_policy(dense, reference) if reference is not None else None
     rows = []
@@ -136,7 +143,7 @@ def main(argv=None) -> dict:
     res = {
         "provenance": provenance(seeds={"noise": "1000 * trial + frame"}),
         "task": args.task, "checkpoint": str(args.checkpoint), "method": label, "parallel": args.parallel,
-        "reference": args.reference, "torch_threads": torch.get_num_threads(),
+        "reference": args.reference, "torch_threads": torch.get_num_threads(), "device": str(device),
         "trajectories": str(args.trajectories), "episodes_from": args.first_episode,
         "protocol": "per trial: reset, untimed dense frame 0, timed frames 1..frames; dense = untouched policy, "
                     "same trials, alternating order; medians",

@@ -28,6 +28,25 @@ def test_frontier_latency_rows_and_resume(tmp_path):
     assert json.loads(out.read_text()) == again
 
 
+def test_call_latency_rows_and_the_device_it_ran_on(tmp_path):
+    import latency
+    import torch
+
+    _toy_policy_and_trajectories(tmp_path, [3, 3])
+    out = tmp_path / "l.json"
+    base = ["--task", "toy", "--checkpoint", str(tmp_path / "policy"), "--trajectories", str(tmp_path / "traj.pt"),
+            "--first-episode", "0", "--trials", "2", "--frames", "2", "--out", str(out), "--batch", "2"]
+    res = latency.main(base + ["--method", "uniform:0.5:timestep"])
+    (r,) = res["rows"]
+    assert r["speedup"] == pytest.approx(r["dense_ms"]["median"] / r["accelerated_ms"]["median"])
+    assert r["dense_ms"]["calls"] == r["accelerated_ms"]["calls"] == 2 * 2 and r["sparsity"] == pytest.approx(0.5)
+    assert r["actions_per_s_per_env"]["dense"] == pytest.approx(r["calls_per_s"]["dense"] * 8)
+    assert res["device"] == "cpu" and json.loads(out.read_text()) == res
+    if not torch.cuda.is_available():  # a GPU that is not there is an error, not a silent CPU run
+        with pytest.raises(SystemExit, match="no such CUDA device"):
+            latency.main(base + ["--method", "ddim:2", "--device", "cuda"])
+
+
 def test_frontier_latency_rejects_a_method_listed_twice(tmp_path):
     import frontier_latency
 
