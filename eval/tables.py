@@ -417,19 +417,21 @@ def image_frontier_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
-def visuomotor_table(folder: Path) -> str:
+def visuomotor_table(folder: Path, latency_folder: Optional[Path] = None) -> str:
     """Image-observation policies: success per method on the test seeds (paired against dense) and,
-    where eval/latency.py timed the method, its call latency against dense with the image encoder's
-    share and the fraction reached of the ideal speed-up (reused branches free, encoder and computed
-    branches as in the dense call)."""
+    where eval/latency.py timed the method (files in ``latency_folder``, default ``folder``;
+    ``folder/gpu``: timed on a GPU), its call latency against dense with the image encoder's share and
+    the fraction reached of the ideal speed-up (reused branches free, encoder and computed branches as
+    in the dense call). A run with the pruner's overlap forced off is its own row."""
     runs = complete_runs(folder, lambda r: r.get("obs_type") == "image")
     timed: dict[tuple[str, str], dict] = {}
     policies = {p for p, _ in runs}
-    for path in sorted(folder.glob("latency_*.json")):
+    for path in sorted((latency_folder or folder).glob("latency_*.json")):
         r = json.loads(path.read_text())
         image = policy_of(r) in policies or any("image_encoder_ms" in row for row in r["rows"])
         if r.get("reference", "dense") == "dense" and image:
-            timed[(policy_of(r), r["method"])] = r
+            overlap = r.get("parallel", "auto")
+            timed[(policy_of(r), r["method"] + ("" if overlap == "auto" else f" (--parallel {overlap})"))] = r
     rows = ["| policy | method | success (episodes) | vs dense: difference (95% CI) on the same episodes | batch "
             "| dense ms | method ms | speed-up | image encoder ms: dense / method (share of the call) "
             "| ideal speed-up, reached | breakdown ms (median) |",
@@ -716,7 +718,8 @@ def main() -> None:
                                 "push-operators": push_operators_table(REPO / "results" / "experts"),
                                 "coverage": coverage_table(robot), "sample-spread": sample_spread_table(robot),
                                 "pruner-training": pruner_training_table(REPO / "checkpoints" / "pruners")})
-    fill(docs / "visuomotor.md", {"visuomotor": visuomotor_table(robot)})
+    fill(docs / "visuomotor.md", {"visuomotor": visuomotor_table(robot),
+                                  "visuomotor-gpu": visuomotor_table(robot, robot / "gpu")})
     readme = {"headline-robot": headline_robot(robot)}
     if any(image.glob("digits_*.json")):
         sample_grids(image)

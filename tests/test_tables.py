@@ -258,6 +258,19 @@ def test_visuomotor_table_joins_success_with_latency_and_the_encoder_share(tmp_p
     assert cells[5:8] == ["100.0", "40.0", "**2.50x**"]
     assert cells[8] == "20.0 / 19.0 (20% / 48%)"
     assert cells[9] == "3.57x, 70%"  # 100 / (20 + 0.1 * 80)
+    # GPU timings (their own folder) join the same success runs; a run with the overlap off is its own row
+    gpu = tmp_path / "gpu"
+    gpu.mkdir()
+    for overlap, ms in (("auto", 10.0), ("off", 12.0)):
+        timed = dict(row, accelerated_ms={"median": ms}, speedup=100.0 / ms)
+        (gpu / f"latency_lift-lift_image_dpt_uniform_{overlap}.json").write_text(json.dumps(
+            {"task": "lift", "checkpoint": "checkpoints/lift_image_dpt", "method": "uniform:0.93:timestep",
+             "parallel": overlap, "rows": [timed]}))
+    _, _, *rows = tables.visuomotor_table(tmp_path, gpu).strip().splitlines()
+    assert [r.split(" | ")[1:3] + r.split(" | ")[6:8] for r in rows[1:]] == [
+        ["`uniform:0.93:timestep`", "0.50 (4)", "10.0", "**10.00x**"],
+        ["`uniform:0.93:timestep (--parallel off)`", "-", "12.0", "**8.33x**"]]
+    assert "parallel off" not in tables.visuomotor_table(tmp_path)  # the CPU table keeps its own rows
 
 
 def test_robot_headline_takes_frontier_speed_ups_and_shows_the_sampler_each_sparse_row_is_held_against(tmp_path):
