@@ -5,8 +5,9 @@
 # CPU cores), the image DP-T trained on them (eval/train_policy.py --obs-type image: ResNet-18 trunk of
 # width ENCODER_WIDTH, default 16, random 76x76 crops, the proprioception keys; 6000 steps at batch 64
 # (checkpoints/<task>_image_dpt: below the 90% Lift target, see docs/results/visuomotor.md), then MORE_STEPS (default
-# 8000) more from those weights with a fresh learning-rate cycle (checkpoints/<task>_image_dpt_14k);
-# resumable; DEVICE=cuda trains on a GPU), 112 recorded trajectories with their camera windows (the
+# 8000) more from those weights with a fresh learning-rate cycle (checkpoints/<task>_image_dpt_14k),
+# and with FURTHER_STEPS (e.g. 8000) that many more again (checkpoints/<task>_image_dpt_22k), which
+# then is the policy of every stage below; resumable; DEVICE=cuda trains on a GPU), 112 recorded trajectories with their camera windows (the
 # schedule search's calibration calls, the pruner's 96 training and 16 validation episodes, the
 # latency tools' observations), the searched 93% steps, and then three stages (PARTS, default
 # pruner,success,latency):
@@ -26,10 +27,6 @@ data=data/${TASK}_expert.hdf5
 images=data/${TASK}_expert_image.hdf5
 first=checkpoints/${TASK}_image_dpt
 CKPT=${first}_$(( (6000 + ${MORE_STEPS:-8000}) / 1000 ))k
-TRAJ=data/trajectories/$(basename "$CKPT").pt
-policy=${TASK}-$(basename "$CKPT")
-steps=results/schedules/${policy}_steps_0.93.json
-pruner=${policy}_tts_0.93
 [ -f "$data" ] || python eval/collect_demos.py --task "$TASK" --episodes 100 --seed 0 --out "$data"
 [ -f "$images" ] || python eval/render_demos.py --data "$data" --out "$images" --size 84 --threads "${THREADS:-2}"
 [ -f "$first.json" ] || { python eval/train_policy.py --data "$images" --obs-type image \
@@ -38,6 +35,17 @@ pruner=${policy}_tts_0.93
 [ -f "$CKPT.json" ] || { python eval/train_policy.py --data "$images" --obs-type image --init "$first" \
     --encoder-width "${ENCODER_WIDTH:-16}" --steps "${MORE_STEPS:-8000}" --batch 64 --save-every 100 --out "$CKPT" \
     --resume --run-dir "$(state_dir "${CKPT##*/}")" ${DEVICE:+--device "$DEVICE"} --threads "${THREADS:-2}" && finish_state "${CKPT##*/}"; }
+if [ "${FURTHER_STEPS:-0}" -gt 0 ]; then  # a third stretch from the second's weights, fresh learning-rate cycle
+  second=$CKPT
+  CKPT=${first}_$(( (6000 + ${MORE_STEPS:-8000} + FURTHER_STEPS) / 1000 ))k
+  [ -f "$CKPT.json" ] || { python eval/train_policy.py --data "$images" --obs-type image --init "$second" \
+      --encoder-width "${ENCODER_WIDTH:-16}" --steps "$FURTHER_STEPS" --batch 64 --save-every 250 --out "$CKPT" \
+      --resume --run-dir "$(state_dir "${CKPT##*/}")" ${DEVICE:+--device "$DEVICE"} --threads "${THREADS:-2}" && finish_state "${CKPT##*/}"; }
+fi
+TRAJ=data/trajectories/$(basename "$CKPT").pt
+policy=${TASK}-$(basename "$CKPT")
+steps=results/schedules/${policy}_steps_0.93.json
+pruner=${policy}_tts_0.93
 parts=${PARTS:-pruner,success,latency}
 [[ $parts != *success* ]] || evaluate --method dense --n-envs 10
 [ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 112 \
