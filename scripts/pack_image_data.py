@@ -65,17 +65,21 @@ def unpack(folder: Path, out: Path) -> None:
     manifest = json.loads((folder / "manifest.json").read_text())
     tmp = out.with_suffix(".partial")
     shutil.copyfile(folder / "rest.hdf5", tmp)
-    with h5py.File(tmp, "a") as f:
-        for cam, info in manifest["cameras"].items():
-            whole = np.frombuffer(lzma.decompress((folder / f"{cam}.u8.xz").read_bytes()), dtype=np.uint8)
-            if hashlib.sha256(whole.tobytes()).hexdigest() != info["sha256"]:
-                raise SystemExit(f"{cam}: the unpacked frames do not match the packed ones")
-            whole = whole.reshape(-1, *info["frame_shape"])
-            start = 0
-            for demo, n in zip(manifest["demos"], info["lengths"]):
-                f["data"][demo]["obs"].create_dataset(cam, data=whole[start:start + n], compression="gzip",
-                                                      compression_opts=4, chunks=(1, *info["frame_shape"]))
-                start += n
+    try:
+        with h5py.File(tmp, "a") as f:
+            for cam, info in manifest["cameras"].items():
+                whole = np.frombuffer(lzma.decompress((folder / f"{cam}.u8.xz").read_bytes()), dtype=np.uint8)
+                if hashlib.sha256(whole.tobytes()).hexdigest() != info["sha256"]:
+                    raise SystemExit(f"{cam}: the unpacked frames do not match the packed ones")
+                whole = whole.reshape(-1, *info["frame_shape"])
+                start = 0
+                for demo, n in zip(manifest["demos"], info["lengths"]):
+                    f["data"][demo]["obs"].create_dataset(cam, data=whole[start:start + n], compression="gzip",
+                                                          compression_opts=4, chunks=(1, *info["frame_shape"]))
+                    start += n
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     tmp.replace(out)
 
 
