@@ -8,8 +8,8 @@
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
 name=lift_mh_dpt_dropout0.3
-[ -f data/lift_mh.hdf5 ] || python eval/collect_demos.py --task lift --mix mh --episodes 100 --seed 0 \
-    --out data/lift_mh.hdf5
+[ -f "checkpoints/$name.json" ] || [ -f data/lift_mh.hdf5 ] || python eval/collect_demos.py --task lift --mix mh \
+    --episodes 100 --seed 0 --out data/lift_mh.hdf5  # the demonstrations, only for a policy still to train
 [ -f "checkpoints/$name.json" ] || { python eval/train_policy.py --data data/lift_mh.hdf5 --dropout 0.3 \
     --out "checkpoints/$name" --steps 7000 --batch 128 --seed 0 --threads "${THREADS:-1}" --resume \
     --run-dir "$(state_dir "$name")" && finish_state "$name"; }
