@@ -29,18 +29,20 @@ first=checkpoints/${TASK}_image_dpt
 CKPT=${first}_$(( (6000 + ${MORE_STEPS:-8000}) / 1000 ))k
 [ -f "$data" ] || python eval/collect_demos.py --task "$TASK" --episodes 100 --seed 0 --out "$data"
 [ -f "$images" ] || python eval/render_demos.py --data "$data" --out "$images" --size 84 --threads "${THREADS:-2}"
-[ -f "$first.json" ] || { python eval/train_policy.py --data "$images" --obs-type image \
-    --encoder-width "${ENCODER_WIDTH:-16}" --steps 6000 --batch 64 --save-every 100 --out "$first" --resume \
-    --run-dir "$(state_dir "${first##*/}")" ${DEVICE:+--device "$DEVICE"} --threads "${THREADS:-2}" && finish_state "${first##*/}"; }
-[ -f "$CKPT.json" ] || { python eval/train_policy.py --data "$images" --obs-type image --init "$first" \
-    --encoder-width "${ENCODER_WIDTH:-16}" --steps "${MORE_STEPS:-8000}" --batch 64 --save-every 100 --out "$CKPT" \
-    --resume --run-dir "$(state_dir "${CKPT##*/}")" ${DEVICE:+--device "$DEVICE"} --threads "${THREADS:-2}" && finish_state "${CKPT##*/}"; }
+# train_image OUT STEPS [--init CKPT]: a resumable image-policy training stretch, skipped when OUT exists.
+train_image() {
+  local out=$1 n=$2
+  shift 2
+  [ -f "$out.json" ] || { python eval/train_policy.py --data "$images" --obs-type image "$@" \
+      --encoder-width "${ENCODER_WIDTH:-16}" --steps "$n" --batch 64 --save-every 100 --out "$out" --resume \
+      --run-dir "$(state_dir "${out##*/}")" ${DEVICE:+--device "$DEVICE"} --threads "${THREADS:-2}" && finish_state "${out##*/}"; }
+}
+train_image "$first" 6000
+train_image "$CKPT" "${MORE_STEPS:-8000}" --init "$first"
 if [ "${FURTHER_STEPS:-0}" -gt 0 ]; then  # a third stretch from the second's weights, fresh learning-rate cycle
   second=$CKPT
   CKPT=${first}_$(( (6000 + ${MORE_STEPS:-8000} + FURTHER_STEPS) / 1000 ))k
-  [ -f "$CKPT.json" ] || { python eval/train_policy.py --data "$images" --obs-type image --init "$second" \
-      --encoder-width "${ENCODER_WIDTH:-16}" --steps "$FURTHER_STEPS" --batch 64 --save-every 250 --out "$CKPT" \
-      --resume --run-dir "$(state_dir "${CKPT##*/}")" ${DEVICE:+--device "$DEVICE"} --threads "${THREADS:-2}" && finish_state "${CKPT##*/}"; }
+  train_image "$CKPT" "$FURTHER_STEPS" --init "$second"
 fi
 TRAJ=data/trajectories/$(basename "$CKPT").pt
 policy=${TASK}-$(basename "$CKPT")
