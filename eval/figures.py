@@ -208,7 +208,8 @@ def data_efficiency(args) -> Path:
 
 
 FAMILY_STYLE = {"ddim": ("#3182bd", "DDIM-k (leading, Diffusion Policy's)"),
-                "ddim-trailing": ("#9ecae1", "DDIM-k (trailing)"), "dpm": ("#31a354", "DPM-Solver++-k")}
+                "ddim-trailing": ("#9ecae1", "DDIM-k (trailing)"), "dpm": ("#31a354", "DPM-Solver++-k"),
+                "ddpm": ("#756bb1", "DDPM-k (stochastic)")}
 
 
 def _point_label(method: str, prefix: str) -> str:

@@ -5,11 +5,11 @@
     python eval/robot.py ... --method uniform:0.93:timestep
     python eval/robot.py ... --method file:results/schedules/lift_steps_0.93.json
     python eval/robot.py ... --method pruner:checkpoints/pruners/lift_tts_0.93@0.93
-    python eval/robot.py ... --method ddim:7          # or dpm:5, ddim:3:trailing
+    python eval/robot.py ... --method ddim:7          # or dpm:5, ddim:3:trailing, ddpm:10
     python eval/robot.py ... --method uniform:0.65:timestep+ddim:20   # TTS on a DDIM-20 base
 
 ``--method`` takes the vocabulary of both suites (eval/common/methods.py): dense | ddim:K[:SPACING] |
-dpm:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | file:SCHEDULE.json | pruner:PATH[@RHO] |
+dpm:K | ddpm:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | file:SCHEDULE.json | pruner:PATH[@RHO] |
 taylorseer:N:O, engine methods optionally on a base sampler (+ddim:K, +dpm:K).
 
 Episodes run in waves of ``--n-envs`` environments whose observations are batched into one policy

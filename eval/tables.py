@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import statistics
 import sys
 from pathlib import Path
@@ -73,20 +72,20 @@ def summary_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
-FEW_STEP = re.compile(r"(ddim|dpm):(\d+)(?::(\w+))?$")
+FEW_STEP = frontier.FEW_STEP
 
 
 def _few_step_key(method: str) -> tuple:
-    """dense first, then DDIM (leading), DDIM trailing, DPM-Solver++, each by number of steps."""
+    """dense first, then DDIM (leading), DDIM trailing, DPM-Solver++, stochastic DDPM, each by number of steps."""
     if method == "dense":
         return (0, "", 0)
     family, k, spacing = FEW_STEP.match(method).groups()
-    return (1 if family == "ddim" else 2, spacing or "", int(k))
+    return ({"ddim": 1, "dpm": 2, "ddpm": 3}[family], spacing or "", int(k))
 
 
 def steps_table(folder: Path) -> str:
     """Does the number of denoising steps matter: success of dense DDPM-100 and the few-step samplers
-    (DDIM-k, DDIM-k with trailing timesteps, DPM-Solver++-k) per policy and split (complete runs;
+    (DDIM-k, DDIM-k with trailing timesteps, DPM-Solver++-k, DDPM-k) per policy and split (complete runs;
     the cell also gives the episodes it pools), and dense minus the best 3-step sampler."""
     runs = complete_runs(folder, lambda r: "success_rate" in r
                          and (r["method"] == "dense" or FEW_STEP.match(r["method"]) is not None))

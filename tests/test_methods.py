@@ -35,6 +35,8 @@ def test_parsed_fields():
     d = parse_method("diffusers:taylorseer:5:2")
     assert (d.cache, d.n, d.order, d.engine) == ("taylorseer", 5, 2, False)
     assert parse_method("uniform:0.5:forward").direction == "forward"
+    ddpm = parse_method("ddpm:7", kinds=ROBOT_KINDS)  # the policy's own stochastic sampler on 7 steps
+    assert (ddpm.kind, ddpm.n, ddpm.sampler.scheduler, ddpm.sampler.spacing, ddpm.engine) == ("ddpm", 7, "ddpm", None, False)
 
 
 @pytest.mark.parametrize("spec, kinds, message", [
@@ -51,6 +53,8 @@ def test_parsed_fields():
     ("uniform:0.9:timestep@0.9", IMAGE_KINDS, "budget applies to"),
     ("toca:6", IMAGE_KINDS, "exactly one of a fresh-token ratio"),
     ("toca:6:0.2", ROBOT_KINDS, "not available in this suite"),
+    ("ddpm:7", IMAGE_KINDS, "not available in this suite"),
+    ("ddpm:7:trailing", ROBOT_KINDS, "a sampler is ddim:K"),
     ("diffusers:fbc", IMAGE_KINDS, "exactly one of a threshold"),
 ])
 def test_bad_specs_say_what_is_wrong(spec, kinds, message):

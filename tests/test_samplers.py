@@ -6,12 +6,12 @@ from non-uniform timesteps without any boundary method.
 """
 import pytest
 import torch
-from diffusers import DDIMScheduler, DPMSolverMultistepScheduler
+from diffusers import DDIMScheduler, DDPMScheduler, DPMSolverMultistepScheduler
 
 import tts
 from common.methods import ROBOT_KINDS, install_policy, parse_method
 from test_robot_pipeline import obs_batch, small_policy
-from tts.adapters.schedulers import FastDDIM
+from tts.adapters.schedulers import FastDDIM, FastDDPM
 from tts.plans import COMPUTE
 
 SAMPLERS = [("ddpm", 10, None), ("ddim", 4, None), ("ddim", 4, "trailing"), ("ddim", 5, "linspace"), ("dpm", 5, None)]
@@ -31,6 +31,24 @@ def test_fast_ddim_equals_diffusers_step(spacing, steps, prediction):
         out = torch.randn(3, 10, 7, generator=g)
         assert torch.equal(fast.step(i, out, x), s.step(out, t, x).prev_sample)
         x = fast.step(i, out, x)
+
+
+@pytest.mark.parametrize("steps", [1, 3, 7, 100])
+def test_fast_ddpm_equals_diffusers_step_on_fewer_steps(steps):
+    # ddpm:K, the stochastic fewer-step sampler: jumps of 100 // K timesteps, fresh noise at each
+    s = DDPMScheduler(num_train_timesteps=100, beta_schedule="squaredcos_cap_v2", clip_sample=True,
+                      variance_type="fixed_small")
+    s.set_timesteps(steps)
+    fast = FastDDPM(s)
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 10, 7, generator=g)
+    for i, t in enumerate(s.timesteps):
+        out = torch.randn(3, 10, 7, generator=g)
+        want = s.step(out, t, x, generator=torch.Generator().manual_seed(i)).prev_sample
+        got = fast.step(i, out, x, generator=torch.Generator().manual_seed(i))
+        assert torch.equal(got, want)
+        x = got
+    assert len(fast) == steps
 
 
 @pytest.mark.parametrize("scheduler, steps, spacing", SAMPLERS)

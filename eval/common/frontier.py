@@ -27,16 +27,17 @@ from typing import Optional
 from .stats import mean_interval, newcombe_paired, paired_counts, paired_score_difference, policy_of, pooled, wilson
 
 __all__ = ["Point", "family", "frontier_points", "image_frontier_points", "on_frontier", "beats_fewer_steps",
-           "is_win", "untimed_samplers"]
+           "is_win", "untimed_samplers", "FEW_STEP", "SAMPLER_FAMILIES"]
 
-_FEW = re.compile(r"(ddim|dpm):(\d+)(?::(\w+))?$")
+FEW_STEP = re.compile(r"(ddim|dpm|ddpm):(\d+)(?::(\w+))?$")
+SAMPLER_FAMILIES = ("ddim", "ddim-trailing", "dpm", "ddpm")  # the fewer-step samplers
 
 
 def family(method: str) -> str:
-    """dense | ddim | ddim-trailing | dpm (fewer-step samplers) | sparse (every engine method)."""
+    """dense | ddim | ddim-trailing | dpm | ddpm (fewer-step samplers) | sparse (every engine method)."""
     if method == "dense":
         return "dense"
-    m = _FEW.match(method)
+    m = FEW_STEP.match(method)
     if m:
         return m.group(1) + (f"-{m.group(3)}" if m.group(3) else "")
     return "sparse"
@@ -144,8 +145,8 @@ def untimed_samplers(folder: Path, policy: str, points: list[Point]) -> dict[str
     row among ``points``, with their step counts. A sparse call's win over the timed samplers is no
     verdict while one of these takes at most as many steps as it computes (it would likely be as fast)."""
     timed = {q.method for q in points}
-    steps = {m: int(_FEW.match(m).group(2)) for m in _success_runs(folder, policy)
-             if family(m) in ("ddim", "ddim-trailing", "dpm") and m not in timed}
+    steps = {m: int(FEW_STEP.match(m).group(2)) for m in _success_runs(folder, policy)
+             if family(m) in SAMPLER_FAMILIES and m not in timed}
     return dict(sorted(steps.items(), key=lambda item: (family(item[0]), item[1])))
 
 
@@ -163,7 +164,7 @@ def beats_fewer_steps(p: Point, points: list[Point]) -> Optional[tuple[Point, fl
     """The best fewer-step sampler at least as fast as ``p`` (within :data:`AS_FAST_TOLERANCE`) and the
     paired difference p - it with its 95% interval, or None when no such sampler was run. ``p`` beats fewer steps when the lower bound
     is above zero (for FID, lower is better: when the upper bound is below zero)."""
-    rivals = [q for q in points if q.family in ("ddim", "ddim-trailing", "dpm")
+    rivals = [q for q in points if q.family in SAMPLER_FAMILIES
               and q.speedup >= p.speedup * (1 - AS_FAST_TOLERANCE)]
     if not rivals:
         return None

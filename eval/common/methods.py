@@ -9,6 +9,8 @@ spec                            method
                                 timesteps: leading (Diffusion Policy's, the default) | trailing |
                                 linspace
 ``dpm:K``                       fewer sampling steps: DPM-Solver++ (2nd order) with K steps, dense
+``ddpm:K``                      fewer sampling steps: the policy's own stochastic DDPM sampler on K
+                                leading timesteps (fresh noise at every step), dense; robot suite
 ``uniform:RHO:DIRECTION``       ``tts.plans.uniform``: RHO of the (step, branch) decisions reuse
 ``every_n:N:DIRECTION``         ``tts.plans.every_n``: full compute every N steps (FORA: timestep)
 ``rotating:RHO:DIRECTION``      ``tts.plans.rotating``: as uniform, the compute steps moved by one
@@ -44,21 +46,21 @@ from typing import Any, Optional
 __all__ = ["Method", "Sampler", "parse_method", "install", "install_policy", "pruner_weights_sha256", "ROBOT_KINDS",
            "IMAGE_KINDS", "VOCABULARY"]
 
-VOCABULARY = ("dense | ddim:K[:SPACING] | dpm:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | rotating:RHO:DIRECTION | "
+VOCABULARY = ("dense | ddim:K[:SPACING] | dpm:K | ddpm:K | uniform:RHO:DIRECTION | every_n:N:DIRECTION | rotating:RHO:DIRECTION | "
               "file:SCHEDULE.json | "
               "pruner:PATH[@RHO] (+taylorO after any of the four) | taylorseer:N:O | toca:N[:RATIO][@RHO] | duca:N[:RATIO][@RHO] | "
               "diffusers:fbc[:THRESHOLD][@RHO] | diffusers:taylorseer:N:O; engine methods take +ddim:K[:SPACING] | +dpm:K "
               "(the base sampler)")
-ROBOT_KINDS = frozenset({"dense", "ddim", "dpm", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer"})
+ROBOT_KINDS = frozenset({"dense", "ddim", "dpm", "ddpm", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer"})
 IMAGE_KINDS = frozenset({"dense", "ddim", "dpm", "uniform", "every_n", "rotating", "file", "pruner", "taylorseer", "toca",
                          "duca", "diffusers"})
 _DIRS = ("forward", "timestep", "rollout")
-SAMPLERS = {"ddim": ("leading", "trailing", "linspace"), "dpm": ()}
+SAMPLERS = {"ddim": ("leading", "trailing", "linspace"), "dpm": (), "ddpm": ()}
 
 
 @dataclass(frozen=True)
 class Sampler:
-    """A sampler of a policy: ``scheduler`` ("ddim" | "dpm"), ``steps``, ``spacing`` (None: default)."""
+    """A sampler of a policy: ``scheduler`` ("ddim" | "dpm" | "ddpm"), ``steps``, ``spacing`` (None: default)."""
 
     scheduler: str
     steps: int
@@ -73,7 +75,7 @@ def _sampler(text: str, spec: str) -> Sampler:
     parts = text.split(":")
     name = parts[0]
     if name not in SAMPLERS or len(parts) not in (2, 3) or (len(parts) == 3 and not SAMPLERS[name]):
-        raise ValueError(f"method {spec!r}: a sampler is ddim:K[:SPACING] or dpm:K, got {text!r}")
+        raise ValueError(f"method {spec!r}: a sampler is ddim:K[:SPACING], dpm:K or ddpm:K, got {text!r}")
     k = _number(parts[1], int, "the number of steps", spec)
     if k < 1:
         raise ValueError(f"method {spec!r}: {name.upper()} needs at least 1 step")
@@ -122,8 +124,8 @@ class Method:
 
     @property
     def engine(self) -> bool:
-        """True when the method runs in the tts engine (everything but ``ddim``, ``dpm``, ``diffusers:``)."""
-        return self.kind not in ("ddim", "dpm", "diffusers")
+        """True when the method runs in the tts engine (everything but ``ddim``, ``dpm``, ``ddpm``, ``diffusers:``)."""
+        return self.kind not in ("ddim", "dpm", "ddpm", "diffusers")
 
 
 def _number(text: str, kind: type, what: str, spec: str):
@@ -174,7 +176,7 @@ def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0
         raise ValueError(f"unknown method {spec!r}; the vocabulary is {VOCABULARY}")
     if kind not in kinds:
         raise ValueError(f"method {kind!r} is not available in this suite (available: {', '.join(sorted(kinds))})")
-    if base is not None and kind in ("ddim", "dpm", "diffusers"):
+    if base is not None and kind in ("ddim", "dpm", "ddpm", "diffusers"):
         raise ValueError(f"method {spec!r}: a base sampler (+ddim:K, +dpm:K) applies to engine methods")
     if base is not None and kinds != ROBOT_KINDS and base.spacing is not None:
         raise ValueError(f"method {spec!r}: the image suite spaces timesteps as DiT does (leading); drop the spacing")
@@ -195,7 +197,7 @@ def _parse_body(spec: str, kind: str, forecast: int) -> Method:
         if len(parts) != 1:
             raise bad
         return Method(spec, kind)
-    if kind in ("ddim", "dpm"):
+    if kind in ("ddim", "dpm", "ddpm"):
         sampler = _sampler(body, spec)
         return Method(spec, kind, n=sampler.steps, sampler=sampler)
     if kind in ("uniform", "every_n", "rotating"):
