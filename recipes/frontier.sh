@@ -5,7 +5,8 @@
 # ALL_EPISODES=1), every method on the same test episodes (SEEDS,
 # default 3 x 50) and timed against one dense reference in one process (eval/frontier_latency.py,
 # batch 1 and 28). Methods: dense DDPM-100; DDIM-k (k = 2 3 4 5 7 10 16), trailing DDIM-k (2 3 5 7 10),
-# DPM-Solver++-k (2 3 5 6 7 10: the best sampler at the latency of every sparse point); searched whole steps at 90-98% on DDPM-100; the TTS step pruner served at
+# DPM-Solver++-k (2 3 5 6 7 10 16 20: the best sampler at the latency of every sparse point), the
+# policy's own stochastic DDPM on k steps (3 5 7 10 16 20: it keeps DDPM's fresh noise per step); searched whole steps at 90-98% on DDPM-100; the TTS step pruner served at
 # those budgets; TTS on DDIM-20 and DDIM-10 bases at 7 computed steps (uniform and searched); the
 # BAC-style schedule, uniform and FORA-interval timestep reuse at 93%. Resumable; a full run is
 # several hours on 2 CPU cores (PARTS=success,latency,figures picks stages; ALL_EPISODES=1 uses
@@ -30,7 +31,8 @@ have() {  # a file: method runs only where its schedule was made
 methods=(dense)
 for k in 2 3 4 5 7 10 16; do methods+=("ddim:$k"); done
 for k in 2 3 5 7 10; do methods+=("ddim:$k:trailing"); done
-for k in 2 3 5 6 7 10; do methods+=("dpm:$k"); done
+for k in 2 3 5 6 7 10 16 20; do methods+=("dpm:$k"); done
+for k in 3 5 7 10 16 20; do methods+=("ddpm:$k"); done
 for rho in 0.9 0.93 0.95 0.97 0.98; do
   search_steps "${sched}_steps_${rho}.json" "$rho"
   methods+=("file:${sched}_steps_${rho}.json")

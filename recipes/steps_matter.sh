@@ -2,7 +2,8 @@
 # Does the number of denoising steps matter for a policy? Dense DDPM-100 and DDIM-k for k in KS
 # (default 1 2 3 5 7 10; Diffusion Policy's leading timesteps), then the stronger few-step samplers a
 # user would try: DDIM with trailing timesteps (starts at t = 99) for k in TRAILING_KS (default 2 3 5)
-# and DPM-Solver++ for k in DPM_KS (default 2 3 5 7), first on validation seeds (400000.., never a test seed), then, with
+# DPM-Solver++ for k in DPM_KS (default 2 3 5 7) and the policy's own stochastic DDPM on k leading
+# timesteps for k in DDPM_KS (default 3 7 10), first on validation seeds (400000.., never a test seed), then, with
 # STAGE=test, on the 3 test seeds x 50 episodes. The testbed counts as discriminative for a task
 # when dense success is high and DDIM-3 falls more than 10 points below it.
 #   TASK=lift CKPT=checkpoints/lift_mh_dpt bash recipes/steps_matter.sh
@@ -25,4 +26,7 @@ for k in ${TRAILING_KS:-2 3 5}; do
 done
 for k in ${DPM_KS:-2 3 5 7}; do
   evaluate --method "dpm:$k" --threads "${THREADS:-1}"
+done
+for k in ${DDPM_KS:-3 7 10}; do
+  evaluate --method "ddpm:$k" --threads "${THREADS:-1}"
 done
