@@ -11,6 +11,14 @@
 # BAC-style schedule, uniform and FORA-interval timestep reuse at 93%. Resumable; a full run is
 # several hours on 2 CPU cores (PARTS=success,latency,figures picks stages; ALL_EPISODES=1 uses
 # every recorded episode, for a policy that rarely succeeds). Then python eval/tables.py
+# METHODS="dense ddim:3 ... file:SCHEDULE.json" runs only those methods and searches nothing; with
+# TRAJ_EPISODES=16 the recorded trajectories are that few (enough for timing, not for a search), e.g.
+# the dropout-0.3 Lift policy's frontier (about 40 min):
+#   TASK=lift CKPT=checkpoints/lift_mh_dpt_dropout0.3 TRAJ=data/trajectories/lift-lift_mh_dpt_dropout0.3_timing.pt \
+#   TRAJ_EPISODES=16 METHODS="dense ddim:3 ddim:7 ddim:3:trailing dpm:3 dpm:7 dpm:10 dpm:20 ddpm:3 ddpm:7 ddpm:10
+#   ddpm:20 file:results/schedules/lift-lift_mh_dpt_dropout0.3_steps_0.93.json
+#   file:results/schedules/lift-lift_mh_dpt_dropout0.3_steps_0.93_rollout_early.json uniform:0.93:timestep" \
+#   bash recipes/frontier.sh
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
 ckpt=${CKPT:-}
@@ -22,12 +30,16 @@ bundled=$([ "$CKPT" = "checkpoints/${TASK}_dpt" ] && echo 1 || echo "")
 policy=$TASK
 [ -n "$bundled" ] || policy=${TASK}-$(basename "$CKPT")
 sched=results/schedules/${policy}  # schedules and pruners belong to one policy
-[ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 112 \
+[ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes "${TRAJ_EPISODES:-112}" \
     --out "$TRAJ" --resume --threads "${THREADS:-2}"  # the schedule search calibrates on them
 have() {  # a file: method runs only where its schedule was made
   local m=${1#file:}
   [[ $1 != file:* ]] || [ -f "${m%%+*}" ]
 }
+if [ -n "${METHODS:-}" ]; then
+  methods=(dense)
+  for m in $METHODS; do [ "$m" = dense ] || methods+=("$m"); done
+else
 methods=(dense)
 for k in 2 3 4 5 7 10 16; do methods+=("ddim:$k"); done
 for k in 2 3 5 7 10; do methods+=("ddim:$k:trailing"); done
@@ -47,6 +59,7 @@ search_steps "${sched}_steps_ddim10_0.3.json" 0.3 --sampler ddim:10
 methods+=("uniform:0.65:timestep+ddim:20" "file:${sched}_steps_ddim20_0.65.json+ddim:20"
           "uniform:0.3:timestep+ddim:10" "file:${sched}_steps_ddim10_0.3.json+ddim:10"
           "file:${sched}_bac_0.93.json" "uniform:0.93:timestep" "every_n:14:timestep")
+fi
 parts=${PARTS:-success,latency,figures}
 if [[ $parts == *success* ]]; then
   for m in "${methods[@]}"; do
