@@ -125,7 +125,7 @@ class Method:
     @property
     def engine(self) -> bool:
         """True when the method runs in the tts engine (everything but ``ddim``, ``dpm``, ``ddpm``, ``diffusers:``)."""
-        return self.kind not in ("ddim", "dpm", "ddpm", "diffusers")
+        return self.kind not in (*SAMPLERS, "diffusers")
 
 
 def _number(text: str, kind: type, what: str, spec: str):
@@ -176,7 +176,7 @@ def parse_method(spec: str, *, kinds: frozenset = IMAGE_KINDS, forecast: int = 0
         raise ValueError(f"unknown method {spec!r}; the vocabulary is {VOCABULARY}")
     if kind not in kinds:
         raise ValueError(f"method {kind!r} is not available in this suite (available: {', '.join(sorted(kinds))})")
-    if base is not None and kind in ("ddim", "dpm", "ddpm", "diffusers"):
+    if base is not None and kind in (*SAMPLERS, "diffusers"):
         raise ValueError(f"method {spec!r}: a base sampler (+ddim:K, +dpm:K) applies to engine methods")
     if base is not None and kinds != ROBOT_KINDS and base.spacing is not None:
         raise ValueError(f"method {spec!r}: the image suite spaces timesteps as DiT does (leading); drop the spacing")
@@ -197,7 +197,7 @@ def _parse_body(spec: str, kind: str, forecast: int) -> Method:
         if len(parts) != 1:
             raise bad
         return Method(spec, kind)
-    if kind in ("ddim", "dpm", "ddpm"):
+    if kind in SAMPLERS:
         sampler = _sampler(body, spec)
         return Method(spec, kind, n=sampler.steps, sampler=sampler)
     if kind in ("uniform", "every_n", "rotating"):
