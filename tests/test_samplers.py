@@ -17,6 +17,18 @@ from tts.plans import COMPUTE
 SAMPLERS = [("ddpm", 10, None), ("ddim", 4, None), ("ddim", 4, "trailing"), ("ddim", 5, "linspace"), ("dpm", 5, None)]
 
 
+def _assert_replays_diffusers(s, fast):
+    """Every step of ``fast`` equals ``s.step`` exactly on random model outputs (same step noise)."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 10, 7, generator=g)
+    for i, t in enumerate(s.timesteps):
+        out = torch.randn(3, 10, 7, generator=g)
+        want = s.step(out, t, x, generator=torch.Generator().manual_seed(i)).prev_sample
+        got = fast.step(i, out, x, generator=torch.Generator().manual_seed(i))
+        assert torch.equal(got, want)
+        x = got
+
+
 @pytest.mark.parametrize("spacing", ["leading", "trailing", "linspace"])
 @pytest.mark.parametrize("steps", [1, 3, 7])
 @pytest.mark.parametrize("prediction", ["epsilon", "sample"])
@@ -24,13 +36,7 @@ def test_fast_ddim_equals_diffusers_step(spacing, steps, prediction):
     s = DDIMScheduler(num_train_timesteps=100, beta_schedule="squaredcos_cap_v2", clip_sample=True,
                       set_alpha_to_one=True, steps_offset=0, prediction_type=prediction, timestep_spacing=spacing)
     s.set_timesteps(steps)
-    fast = FastDDIM(s)
-    g = torch.Generator().manual_seed(0)
-    x = torch.randn(3, 10, 7, generator=g)
-    for i, t in enumerate(s.timesteps):
-        out = torch.randn(3, 10, 7, generator=g)
-        assert torch.equal(fast.step(i, out, x), s.step(out, t, x).prev_sample)
-        x = fast.step(i, out, x)
+    _assert_replays_diffusers(s, FastDDIM(s))
 
 
 @pytest.mark.parametrize("steps", [1, 3, 7, 100])
@@ -40,14 +46,7 @@ def test_fast_ddpm_equals_diffusers_step_on_fewer_steps(steps):
                       variance_type="fixed_small")
     s.set_timesteps(steps)
     fast = FastDDPM(s)
-    g = torch.Generator().manual_seed(0)
-    x = torch.randn(3, 10, 7, generator=g)
-    for i, t in enumerate(s.timesteps):
-        out = torch.randn(3, 10, 7, generator=g)
-        want = s.step(out, t, x, generator=torch.Generator().manual_seed(i)).prev_sample
-        got = fast.step(i, out, x, generator=torch.Generator().manual_seed(i))
-        assert torch.equal(got, want)
-        x = got
+    _assert_replays_diffusers(s, fast)
     assert len(fast) == steps
 
 
