@@ -113,8 +113,10 @@ def test_frontier_join_dominance_and_the_fewer_steps_verdict(tmp_path):
     # a sampler 3% slower than a sparse method is within the timing noise: it is its rival
     slower = frontier.Point("ddim:6", 0.99, n, (0.9, 1.0), 9.0 * 0.97, 1.0, 6, pts["ddim:5"].runs)
     assert frontier.beats_fewer_steps(pts["uniform:0.8:timestep"], [*pts.values(), slower])[0] is slower
-    assert [frontier.family(m) for m in ("dense", "ddim:3", "ddim:3:trailing", "dpm:2", "ddpm:7", "file:x+ddim:20")] == \
-        ["dense", "ddim", "ddim-trailing", "dpm", "ddpm", "sparse"]
+    specs = ("dense", "ddim:3", "ddim:3:leading", "ddim:3:trailing", "dpm:2", "ddpm:7", "file:x+ddim:20")
+    assert [frontier.family(m) for m in specs] == ["dense", "ddim", "ddim", "ddim-trailing", "dpm", "ddpm", "sparse"]
+    # every sampler of the method vocabulary is a fewer-step family (an explicit default spacing is the plain one)
+    assert set(frontier.SAMPLER_FAMILIES) >= {"ddim", "ddim-trailing", "dpm", "ddpm"}
     # the stochastic fewer-step DDPM is a rival like the others
     ddpm = frontier.Point("ddpm:6", 1.0, n, (0.95, 1.0), 9.5, 1.0, 6, pts["ddim:5"].runs)
     assert frontier.beats_fewer_steps(pts["uniform:0.8:timestep"], [*pts.values(), ddpm])[0] is ddpm

@@ -24,13 +24,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
+from .methods import SAMPLERS
 from .stats import mean_interval, newcombe_paired, paired_counts, paired_score_difference, policy_of, pooled, wilson
 
 __all__ = ["Point", "family", "frontier_points", "image_frontier_points", "on_frontier", "beats_fewer_steps",
            "is_win", "untimed_samplers", "FEW_STEP", "SAMPLER_FAMILIES"]
 
-FEW_STEP = re.compile(r"(ddim|dpm|ddpm):(\d+)(?::(\w+))?$")
-SAMPLER_FAMILIES = ("ddim", "ddim-trailing", "dpm", "ddpm")  # the fewer-step samplers
+FEW_STEP = re.compile(rf"({'|'.join(SAMPLERS)}):(\d+)(?::(\w+))?$")
+# the fewer-step samplers: each sampler with its default timestep spacing, then its other spacings
+SAMPLER_FAMILIES = (*SAMPLERS, *(f"{name}-{s}" for name, spacings in SAMPLERS.items() for s in spacings[1:]))
 
 
 def family(method: str) -> str:
@@ -39,7 +41,8 @@ def family(method: str) -> str:
         return "dense"
     m = FEW_STEP.match(method)
     if m:
-        return m.group(1) + (f"-{m.group(3)}" if m.group(3) else "")
+        name, spacing = m.group(1), m.group(3)
+        return name if spacing is None or spacing == SAMPLERS[name][0] else f"{name}-{spacing}"
     return "sparse"
 
 
