@@ -10,7 +10,7 @@
 # then is the policy of every stage below; resumable; DEVICE=cuda trains on a GPU), 112 recorded trajectories with their camera windows (the
 # schedule search's calibration calls, the pruner's 96 training and 16 validation episodes, the
 # latency tools' observations), the searched 93% steps, and then three stages (PARTS, default
-# pruner,success,latency):
+# pruner,success,latency; PARTS=train stops once the policy is trained):
 # - pruner: the step-level TTS pruner at 93% as robot_table.sh trains it (recipes/lib.sh steps_recipe:
 #   from the searched steps, timestep and rollout reuse, 3 epochs), trained on the recorded camera
 #   windows of the successful episodes (98 of the 112: 82 train, 16 validation; a failed episode
@@ -44,11 +44,12 @@ if [ "${FURTHER_STEPS:-0}" -gt 0 ]; then  # a third stretch from the second's we
   CKPT=${first}_$(( (6000 + ${MORE_STEPS:-8000} + FURTHER_STEPS) / 1000 ))k
   train_image "$CKPT" "$FURTHER_STEPS" --init "$second"
 fi
+parts=${PARTS:-pruner,success,latency}
+[ "$parts" != train ] || exit 0
 TRAJ=data/trajectories/$(basename "$CKPT").pt
 policy=${TASK}-$(basename "$CKPT")
 steps=results/schedules/${policy}_steps_0.93.json
 pruner=${policy}_tts_0.93
-parts=${PARTS:-pruner,success,latency}
 [[ $parts != *success* ]] || evaluate --method dense --n-envs 10
 [ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 112 \
     --out "$TRAJ" --resume --threads "${THREADS:-2}"
