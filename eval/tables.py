@@ -396,6 +396,32 @@ def frontier_table(folder: Path, latency_folder: Optional[Path] = None) -> str:
     return "\n".join(rows) + "\n"
 
 
+def sampler_families_table(folder: Path, batch: int = 1) -> str:
+    """Every sparse method of a timed policy at ``batch`` against the best sampler of each fewer-step
+    family (DDIM, DPM-Solver++, DDPM, trailing DDIM) at least as fast: the paired difference on the same
+    test episodes, so the verdict against each sampler a user might pick is read off, not only against
+    the best one (the frontier table's last column)."""
+    policies = {}
+    for path in sorted(folder.glob("frontier_latency_*.json")):
+        doc = json.loads(path.read_text())
+        policy = doc["task"] if doc["policy"] == doc["task"] else f"{doc['task']} ({Path(doc['checkpoint']).name})"
+        policies[policy] = frontier.frontier_points(folder, policy, batch)
+    families = [f for f in frontier.SAMPLER_FAMILIES if any(q.family == f for ps in policies.values() for q in ps)]
+    rows = ["| policy | method | speed-up vs dense | score | " + " | ".join(f"minus best {f} as fast (paired 95% CI)"
+                                                                  for f in families) + " |",
+            "|---|---|---|---|" + "---|" * len(families)]
+    for policy, points in policies.items():
+        for p in sorted((q for q in points if q.family == "sparse"), key=lambda q: -q.speedup):
+            cells = []
+            for fam in families:
+                vs = frontier.beats_fewer_steps(p, [q for q in points if q.family == fam])
+                cells.append("-" if vs is None else
+                             f"`{vs[0].method}`: {vs[1]:+.3f} ({vs[2]:+.3f}, {vs[3]:+.3f}){' **wins**' if frontier.is_win(p, vs) else ''}")
+            rows.append(f"| {policy} | `{p.method}` | {p.speedup:.2f}x | {p.metric} {p.score:.3f} ({p.episodes}) | "
+                        + " | ".join(cells) + " |")
+    return "\n".join(rows) + "\n"
+
+
 def image_frontier_table(folder: Path) -> str:
     """FID against speed-up over dense DDIM-50 per batch size (eval/common/frontier.py): every image run
     with a row in results/image/frontier_latency.json."""
@@ -710,6 +736,7 @@ def main() -> None:
     fill(docs / "robot.md", {"robot": summary_table(robot), "latency": latency_table(robot),
                              "reuse-cost": reuse_cost_table(robot), "frontier": frontier_table(robot),
                              "gpu-frontier": frontier_table(robot, robot / "gpu"),
+                             "sampler-families": sampler_families_table(robot),
                              "agreement": agreement_table(robot), "headroom": headroom_table(robot),
                              "rollout-age": rollout_age_table(robot),
                              "runs": robot_table(robot)})

@@ -273,30 +273,50 @@ def test_visuomotor_table_joins_success_with_latency_and_the_encoder_share(tmp_p
     assert "parallel off" not in tables.visuomotor_table(tmp_path)  # the CPU table keeps its own rows
 
 
+def _lift_frontier(folder, successes: dict, speeds: dict) -> None:
+    """Test-seed runs of the bundled Lift policy (method -> per-episode successes) and one frontier
+    latency file (method -> (batch-1 speed-up, computed steps); at batch 28 the speed-up is 1/28 higher)."""
+    for method, wins in successes.items():
+        eps = [{"seed": 100000 + i, "success": bool(x)} for i, x in enumerate(wins)]
+        doc = {"task": "lift", "checkpoint": "checkpoints/lift_dpt", "method": method, "episodes_requested": len(eps),
+               "episodes_done": len(eps), "success_rate": sum(wins) / len(eps),
+               "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps,
+               "tts": {"last_call": {"macs_dense": 100.0, "macs_realised": 10.0}}}
+        (folder / f"lift_{method.replace(':', '-')}.json").write_text(json.dumps(doc))
+    rows = [{"method": m, "batch": b, "latency_ms": 100 / (s + b / 28 - 1 / 28), "dense_ms": 100.0,
+             "speedup": s + b / 28 - 1 / 28, "computed_steps": k} for b in (1, 28) for m, (s, k) in speeds.items()]
+    (folder / "frontier_latency_lift.json").write_text(json.dumps(
+        {"task": "lift", "checkpoint": "checkpoints/lift_dpt", "policy": "lift", "rows": rows}))
+
+
 def test_robot_headline_takes_frontier_speed_ups_and_shows_the_sampler_each_sparse_row_is_held_against(tmp_path):
     import tables
 
-    def write(method, successes):
-        eps = [{"seed": 100000 + i, "success": bool(x)} for i, x in enumerate(successes)]
-        doc = {"task": "lift", "checkpoint": "checkpoints/lift_dpt", "method": method, "episodes_requested": len(eps),
-               "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
-               "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps,
-               "tts": {"last_call": {"macs_dense": 100.0, "macs_realised": 10.0}}}
-        (tmp_path / f"lift_{method.replace(':', '-')}.json").write_text(json.dumps(doc))
-
-    for m in ("dense", "ddim:7", "ddim:3:trailing", "ddim:2"):
-        write(m, [1] * 20)
-    write("file:lift_steps_0.93", [1] * 19 + [0])
-    rows = [{"method": m, "batch": b, "latency_ms": 100 / s, "dense_ms": 100.0, "speedup": s, "computed_steps": k}
-            for b in (1, 28) for m, s, k in (("ddim:7", 14.0, 7), ("ddim:3:trailing", 30.0, 3), ("ddim:2", 45.0, 2),
-                                             ("file:lift_steps_0.93", 10.0 + b / 28, 7))]
-    (tmp_path / "frontier_latency_lift.json").write_text(json.dumps(
-        {"task": "lift", "checkpoint": "checkpoints/lift_dpt", "policy": "lift", "rows": rows}))
+    _lift_frontier(tmp_path, {"dense": [1] * 20, "ddim:7": [1] * 20, "ddim:3:trailing": [1] * 20, "ddim:2": [1] * 20,
+                              "file:lift_steps_0.93": [1] * 19 + [0]},
+                   {"ddim:7": (14.0, 7), "ddim:3:trailing": (30.0, 3), "ddim:2": (45.0, 2),
+                    "file:lift_steps_0.93": (10.0 + 1 / 28, 7)})
     lines = tables.headline_robot(tmp_path).strip().splitlines()[2:]
     assert [line.split(" | ")[1] for line in lines] == ["`dense`", "`ddim:7`", "`ddim:2`", "`file:lift_steps_0.93`"]
     steps = lines[3].split(" | ")
     assert steps[4] == "10.04x / 11.00x"  # the frontier's batch-1 and batch-28 speed-ups
     assert steps[6].startswith("`ddim:2`: -0.050 (")  # the most successful sampler at least as fast
+
+
+def test_sampler_families_table_pairs_each_sparse_method_with_every_family_as_fast(tmp_path):
+    import tables
+
+    _lift_frontier(tmp_path, {"dense": [1] * 30, "ddim:7": [1] * 30, "ddim:2": [0] * 30, "dpm:3": [0] * 30,
+                              "dpm:12": [1] * 30, "uniform:0.9:timestep": [1] * 29 + [0]},
+                   {"ddim:7": (14.0, 7), "ddim:2": (45.0, 2), "dpm:3": (30.0, 3), "dpm:12": (8.0, 12),
+                    "uniform:0.9:timestep": (10.0, 10)})
+    lines = tables.sampler_families_table(tmp_path).strip().splitlines()
+    assert "ddim as fast" in lines[0] and "dpm as fast" in lines[0] and "ddpm" not in lines[0]  # only families run
+    cells = lines[2].split(" | ")
+    assert cells[1:3] == ["`uniform:0.9:timestep`", "10.00x"]
+    assert cells[4].startswith("`ddim:7`: -0.033 (") and "wins" not in cells[4]  # the best DDIM as fast
+    assert cells[5].startswith("`dpm:3`: +0.967 (") and cells[5].endswith("**wins** |")  # DPM-12 is slower: not a rival
+    assert len(lines) == 3  # samplers are rivals, not rows
 
 
 def test_training_curves_label_each_reference_pruner_and_take_the_searched_steps_from_the_prior_run(tmp_path):
