@@ -355,6 +355,11 @@ def pruner_training_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+def _timed_policy(doc: dict) -> str:
+    """The policy label of a frontier_latency file: the task, with the checkpoint when it is not the bundled one."""
+    return doc["task"] if doc["policy"] == doc["task"] else f"{doc['task']} ({Path(doc['checkpoint']).name})"
+
+
 def _versus_fewer_steps(p, points: list, digits: int, untimed: Sequence[str] = ()) -> str:
     """The last frontier column: a sparse method against the best fewer-step sampler as fast. A win
     over the timed samplers while ``untimed`` ones (run on the test seeds, not timed, with at most as
@@ -382,7 +387,7 @@ def frontier_table(folder: Path, latency_folder: Optional[Path] = None) -> str:
             "|---|---|---|---|---|---|---|---|---|"]
     for path in sorted((latency_folder or folder).glob("frontier_latency_*.json")):
         doc = json.loads(path.read_text())
-        policy = doc["task"] if doc["policy"] == doc["task"] else f"{doc['task']} ({Path(doc['checkpoint']).name})"
+        policy = _timed_policy(doc)
         for batch in sorted({r["batch"] for r in doc["rows"]}):
             points = frontier.frontier_points(folder, policy, batch, latency_folder)
             untimed = frontier.untimed_samplers(folder, policy, points)
@@ -404,7 +409,7 @@ def sampler_families_table(folder: Path, batch: int = 1) -> str:
     policies = {}
     for path in sorted(folder.glob("frontier_latency_*.json")):
         doc = json.loads(path.read_text())
-        policy = doc["task"] if doc["policy"] == doc["task"] else f"{doc['task']} ({Path(doc['checkpoint']).name})"
+        policy = _timed_policy(doc)
         policies[policy] = frontier.frontier_points(folder, policy, batch)
     families = [f for f in frontier.SAMPLER_FAMILIES if any(q.family == f for ps in policies.values() for q in ps)]
     rows = ["| policy | method | speed-up vs dense | score | " + " | ".join(f"minus best {f} as fast (paired 95% CI)"
