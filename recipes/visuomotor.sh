@@ -15,7 +15,8 @@
 #   from the searched steps, timestep and rollout reuse, 3 epochs), trained on the recorded camera
 #   windows of the successful episodes (98 of the 112: 82 train, 16 validation; a failed episode
 #   runs 50 calls against about 7, and a lockstep group runs to its longest episode);
-# - success: dense, the searched 93% steps, DDIM-7, DPM-Solver++-7, DDIM-3 and the pruner (once
+# - success: dense, the searched 93% steps, DDIM-7, DPM-Solver++-7, DDIM-3, DPM-Solver++-3, the
+#   policy's own stochastic DDPM on 3 steps and the pruner (once
 #   trained) on the test seeds, rendering the frames each call reads (about 0.5-1.5 h per method on 2 CPU cores);
 # - latency: each of those and uniform 93% timestep reuse against dense at batch 1 and 28, with the
 #   breakdown (image encoder, condition, pruner, wait, steps); run it on a quiet machine.
@@ -54,7 +55,7 @@ pruner=${policy}_tts_0.93
 [ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 112 \
     --out "$TRAJ" --resume --threads "${THREADS:-2}"
 search_steps "$steps" 0.93
-methods=("file:$steps" ddim:7 dpm:7 ddim:3)
+methods=("file:$steps" ddim:7 dpm:7 ddim:3 dpm:3 ddpm:3)
 # shellcheck disable=SC2046
 [[ $parts != *pruner* ]] || NTRAIN=82 EPOCHS=3 train_named "$pruner" $(steps_recipe 0.93 "$steps") --directions timestep,rollout
 if trained "$pruner"; then methods+=("pruner:checkpoints/pruners/$pruner@0.93"); fi
