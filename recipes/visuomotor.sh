@@ -28,13 +28,16 @@ data=data/${TASK}_expert.hdf5
 images=data/${TASK}_expert_image.hdf5
 first=checkpoints/${TASK}_image_dpt
 CKPT=${first}_$(( (6000 + ${MORE_STEPS:-8000}) / 1000 ))k
-[ -f "$data" ] || python eval/collect_demos.py --task "$TASK" --episodes 100 --seed 0 --out "$data"
-[ -f "$images" ] || python eval/render_demos.py --data "$data" --out "$images" --size 84 --threads "${THREADS:-2}"
+# rendered_demos: the demonstrations and their camera frames, made only for a policy still to train.
+rendered_demos() {
+  [ -f "$data" ] || python eval/collect_demos.py --task "$TASK" --episodes 100 --seed 0 --out "$data"
+  [ -f "$images" ] || python eval/render_demos.py --data "$data" --out "$images" --size 84 --threads "${THREADS:-2}"
+}
 # train_image OUT STEPS [--init CKPT]: a resumable image-policy training stretch, skipped when OUT exists.
 train_image() {
   local out=$1 n=$2
   shift 2
-  [ -f "$out.json" ] || { python eval/train_policy.py --data "$images" --obs-type image "$@" \
+  [ -f "$out.json" ] || { rendered_demos && python eval/train_policy.py --data "$images" --obs-type image "$@" \
       --encoder-width "${ENCODER_WIDTH:-16}" --steps "$n" --batch 64 --save-every 100 --out "$out" --resume \
       --run-dir "$(state_dir "${out##*/}")" ${DEVICE:+--device "$DEVICE"} --threads "${THREADS:-2}" && finish_state "${out##*/}"; }
 }
