@@ -52,6 +52,9 @@ def test_rendered_demos_keep_everything_and_match_the_recorded_scene(lift_demos,
     assert not np.array_equal(dst[0].obs["agentview_image"][0], dst[1].obs["agentview_image"][0])  # other scene
     # MuJoCo's step leaves positions one physics substep behind the integrated state: under a millimetre
     assert report["max_low_dim_difference"] < 2e-3 and report["frames"] == 10
+    by_key = report["low_dim_difference_by_key"]
+    assert {"object", "robot0_eef_pos", "robot0_gripper_qpos"} <= set(by_key)
+    assert max(by_key.values()) == report["max_low_dim_difference"]
     args = read_env_args(out)["env_kwargs"]
     assert args["use_camera_obs"] and args["camera_names"] == ["agentview", "robot0_eye_in_hand"]
     assert args["camera_heights"] == 24 and json.loads(out.with_suffix(".json").read_text())["demos"] == 2
