@@ -452,7 +452,8 @@ def visuomotor_table(folder: Path, latency_folder: Optional[Path] = None) -> str
     where eval/latency.py timed the method (files in ``latency_folder``, default ``folder``;
     ``folder/gpu``: timed on a GPU), its call latency against dense with the image encoder's share and
     the fraction reached of the ideal speed-up (reused branches free, encoder and computed branches as
-    in the dense call). A run with the pruner's overlap forced off is its own row."""
+    in the dense call). A run with the pruner's overlap forced off is its own row. With a separate
+    ``latency_folder`` only the policies timed there are listed."""
     runs = complete_runs(folder, lambda r: r.get("obs_type") == "image")
     timed: dict[tuple[str, str], dict] = {}
     policies = {p for p, _ in runs}
@@ -466,7 +467,10 @@ def visuomotor_table(folder: Path, latency_folder: Optional[Path] = None) -> str
             "| dense ms | method ms | speed-up | image encoder ms: dense / method (share of the call) "
             "| ideal speed-up, reached | breakdown ms (median) |",
             "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for key in sorted(set(runs) | set(timed), key=lambda k: (k[0], k[1] != "dense", k[1])):
+    listed = set(runs) | set(timed)
+    if latency_folder is not None and latency_folder != folder:
+        listed = {k for k in listed if k[0] in {p for p, _ in timed}}
+    for key in sorted(listed, key=lambda k: (k[0], k[1] != "dense", k[1])):
         policy, method = key
         rs = runs.get(key, [])
         score = "-" if not rs else "{:.2f} ({})".format(*pooled(rs))

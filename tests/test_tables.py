@@ -266,6 +266,11 @@ def test_visuomotor_table_joins_success_with_latency_and_the_encoder_share(tmp_p
         (gpu / f"latency_lift-lift_image_dpt_uniform_{overlap}.json").write_text(json.dumps(
             {"task": "lift", "checkpoint": "checkpoints/lift_image_dpt", "method": "uniform:0.93:timestep",
              "parallel": overlap, "rows": [timed]}))
+    untimed = {"task": "can", "checkpoint": "checkpoints/can_image_dpt", "method": "dense", "obs_type": "image",
+               "episodes_requested": 1, "episodes_done": 1, "success_rate": 1.0,
+               "provenance": {"seeds": [100000]}, "episodes": [{"seed": 100000, "success": True}]}
+    (tmp_path / "can_image_dense.json").write_text(json.dumps(untimed))  # a policy never timed on the GPU
+    assert "| can (can_image_dpt) | `dense` |" in tables.visuomotor_table(tmp_path)
     _, _, *rows = tables.visuomotor_table(tmp_path, gpu).strip().splitlines()
     assert [r.split(" | ")[1:3] + r.split(" | ")[6:8] for r in rows[1:]] == [
         ["`uniform:0.93:timestep`", "0.50 (4)", "10.0", "**10.00x**"],
