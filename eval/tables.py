@@ -469,7 +469,8 @@ def visuomotor_table(folder: Path, latency_folder: Optional[Path] = None) -> str
             "|---|---|---|---|---|---|---|---|---|---|---|"]
     listed = set(runs) | set(timed)
     if latency_folder is not None and latency_folder != folder:
-        listed = {k for k in listed if k[0] in {p for p, _ in timed}}
+        timed_policies = {p for p, _ in timed}
+        listed = {k for k in listed if k[0] in timed_policies}
     for key in sorted(listed, key=lambda k: (k[0], k[1] != "dense", k[1])):
         policy, method = key
         rs = runs.get(key, [])

@@ -236,12 +236,12 @@ def test_pruner_training_table_shows_the_curve_of_a_training_in_progress(tmp_pat
 def test_visuomotor_table_joins_success_with_latency_and_the_encoder_share(tmp_path):
     import tables
 
-    def write(method, successes, obs_type="image"):
+    def write(method, successes, obs_type="image", task="lift"):
         eps = [{"seed": 100000 + i, "success": bool(x)} for i, x in enumerate(successes)]
-        doc = {"task": "lift", "checkpoint": "checkpoints/lift_image_dpt", "method": method, "obs_type": obs_type,
+        doc = {"task": task, "checkpoint": f"checkpoints/{task}_image_dpt", "method": method, "obs_type": obs_type,
                "episodes_requested": len(eps), "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
                "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps}
-        (tmp_path / f"{obs_type}_{method.replace(':', '-')}.json").write_text(json.dumps(doc))
+        (tmp_path / f"{task}_{obs_type}_{method.replace(':', '-')}.json").write_text(json.dumps(doc))
 
     write("dense", [1, 1, 1, 0])
     write("uniform:0.93:timestep", [1, 0, 1, 0])
@@ -266,10 +266,7 @@ def test_visuomotor_table_joins_success_with_latency_and_the_encoder_share(tmp_p
         (gpu / f"latency_lift-lift_image_dpt_uniform_{overlap}.json").write_text(json.dumps(
             {"task": "lift", "checkpoint": "checkpoints/lift_image_dpt", "method": "uniform:0.93:timestep",
              "parallel": overlap, "rows": [timed]}))
-    untimed = {"task": "can", "checkpoint": "checkpoints/can_image_dpt", "method": "dense", "obs_type": "image",
-               "episodes_requested": 1, "episodes_done": 1, "success_rate": 1.0,
-               "provenance": {"seeds": [100000]}, "episodes": [{"seed": 100000, "success": True}]}
-    (tmp_path / "can_image_dense.json").write_text(json.dumps(untimed))  # a policy never timed on the GPU
+    write("dense", [1], task="can")  # a policy never timed on the GPU
     assert "| can (can_image_dpt) | `dense` |" in tables.visuomotor_table(tmp_path)
     _, _, *rows = tables.visuomotor_table(tmp_path, gpu).strip().splitlines()
     assert [r.split(" | ")[1:3] + r.split(" | ")[6:8] for r in rows[1:]] == [
