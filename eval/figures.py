@@ -317,20 +317,24 @@ def image_frontier(args) -> Path:
     return out
 
 
-CURVE_LABELS = {"forward-timestep-rollout": "omni, from scratch", "prior": "omni, from the searched prior"}
+CURVE_LABELS = {"forward-timestep-rollout": "omni, from scratch", "prior": "omni, from the searched prior",
+                "paired_forward-timestep-rollout": "omni, from scratch, paired noise"}
+# how the direction panel draws each omni curve
+DIRECTION_STYLES = {"omni, from scratch": "-", "omni, from the searched prior": "--", "omni, from scratch, paired noise": ":"}
 
 
 def training_curves_of(folder: Path, policy: str) -> tuple[dict[str, list[dict]], Optional[float], dict]:
     """The per-epoch history of each reference-recipe pruner of ``policy`` in ``folder``
     (``<policy>_reference_<what>_<rho>.json``; single directions are labelled by their name), the
     validation L1 of the searched steps (epoch 0 of the pruner started from them, ``prior``, whose
-    argmax is their schedule; None without it) and the metadata of one of the trainings (one that
-    records the dense policy's validation L1, ``val_l1_dense``, where one does)."""
+    argmax is their schedule; None without it) and the metadata of one of the trainings (an unpaired one
+    that records the dense policy's validation L1, ``val_l1_dense``, where one does: a paired run's
+    is 0, its target being the dense action on the same noise)."""
     curves, searched, meta = {}, None, {}
     for path in sorted(folder.glob(f"{policy}_reference_*.json")):
         what = path.stem[len(f"{policy}_reference_"):].rsplit("_", 1)[0]
         this = json.loads(path.read_text())["metadata"]
-        if "val_l1_dense" in this or "val_l1_dense" not in meta:
+        if ("val_l1_dense" in this and not this.get("paired")) or not meta:
             meta = this
         hist = this["history"]
         if what == "prior" and hist and hist[0]["epoch"] == 0:
@@ -351,7 +355,9 @@ def training_curves(args) -> Path:
     fig, (ax_l1, ax_sp, ax_dir) = plt.subplots(1, 3, figsize=(15.5, 4.0))
     for label, hist in sorted(curves.items()):
         epochs = [h["epoch"] for h in hist]
-        ax_l1.plot(epochs, [h["val_l1"] for h in hist], "o-", ms=3, label=label)
+        paired = label.endswith("paired noise")  # its L1 is to the dense action on the same noise
+        ax_l1.plot(epochs, [h["val_l1"] for h in hist], "s--" if paired else "o-", ms=3,
+                   label=label + (" (L1 on the same noise)" if paired else ""))
         ax_sp.plot(epochs, [h["val_sparsity"] for h in hist], "o-", ms=3, label=label)
         if label.startswith("omni"):  # which direction the reuse decisions take (recorded since it was added)
             for d, color in zip(("forward", "timestep", "rollout"), COLORS[1:]):
@@ -359,7 +365,7 @@ def training_curves(args) -> Path:
                 if not rows:
                     continue
                 ax_dir.plot([h["epoch"] for h in rows], [h[f"val_reuse_{d}"] for h in rows],
-                            "o" + ("-" if label.endswith("scratch") else "--"), ms=3, color=color,
+                            "o" + DIRECTION_STYLES.get(label, "-."), ms=3, color=color,
                             label=f"{d} ({label})")
     if searched is not None:
         ax_l1.axhline(searched, color="k", ls="--", lw=1, label="searched steps (the prior)")

@@ -334,10 +334,12 @@ def _stretches(meta: dict) -> str:
 def pruner_training_table(folder: Path) -> str:
     """The training curves of the reference-recipe pruners (checkpoints/pruners/*_reference_*.json,
     written after every epoch, so a training in progress shows the epochs it has done), with the val L1
-    of the untouched policy under the same noise draws (the floor a second noise draw sets)."""
-    rows = ["| pruner | epochs done | where it ran | best epoch: val L1, val sparsity | its reuse by direction (F / T / R) | "
-            "val L1 of the dense policy | val sparsity per epoch | val L1 per epoch | train sparsity per epoch |",
-            "|---|---|---|---|---|---|---|---|---|"]
+    of the untouched policy under the same noise draws (the floor a second noise draw sets; 0 for a
+    paired run, whose target is the dense action on the same noise)."""
+    rows = ["| pruner | epochs done | where it ran | L1 target | best epoch: val L1, val sparsity | "
+            "its reuse by direction (F / T / R) | val L1 of the dense policy | val sparsity per epoch | val L1 per epoch | "
+            "train sparsity per epoch |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
     for path in sorted(folder.glob("*_reference_*.json")):
         meta = json.loads(path.read_text())["metadata"]
         hist, best = meta["history"], meta["best_epoch"]
@@ -347,7 +349,8 @@ def pruner_training_table(folder: Path) -> str:
         floor = f"{meta['val_l1_dense']:.4f}" if "val_l1_dense" in meta else "-"
         mix = " / ".join(f"{best[f'val_reuse_{d}']:.2f}" if f"val_reuse_{d}" in best else "-"
                          for d in ("forward", "timestep", "rollout"))
-        rows.append(f"| `{path.stem}` | {hist[-1]['epoch']} of {meta['epochs']} | {_stretches(meta)} | {best['epoch']}: "
+        target = "dense, same noise" if meta.get("paired") else "dense, another draw"
+        rows.append(f"| `{path.stem}` | {hist[-1]['epoch']} of {meta['epochs']} | {_stretches(meta)} | {target} | {best['epoch']}: "
                     f"{best['val_l1']:.4f}, {best['val_sparsity']:.3f} | {mix} | {floor} | {series('val_sparsity', 2)} | "
                     f"{series('val_l1', 3)} | {series('train_sparsity', 2)} |")
     if len(rows) == 2:

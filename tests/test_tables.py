@@ -220,17 +220,18 @@ def test_pruner_training_table_shows_the_curve_of_a_training_in_progress(tmp_pat
             {"epoch": 1, "train_l1": 0.2, "train_sparsity": 0.5, "val_l1": 0.09, "val_sparsity": 0.61,
              "val_reuse_timestep": 0.5, "val_reuse_rollout": 0.11}]
     (tmp_path / "pusht_reference_prior_0.93.json").write_text(json.dumps(
-        {"metadata": {"history": hist, "best_epoch": hist[1], "epochs": 20, "val_l1_dense": 0.05}}))
+        {"metadata": {"history": hist, "best_epoch": hist[1], "epochs": 20, "val_l1_dense": 0.05, "paired": True}}))
     stretches = [{"epoch": 0, "groups": 0, "precision": "float32", "device": "cuda: NVIDIA H200"},
                  {"epoch": 0, "groups": 2, "precision": "float32", "device": "cpu: AMD EPYC"}]
     (tmp_path / "pusht_reference_omni_0.93.json").write_text(json.dumps(
         {"metadata": {"history": hist, "best_epoch": hist[0], "epochs": 20, "precision_log": stretches}}))
     (tmp_path / "lift_tts_0.93.json").write_text("{}")  # not a reference-recipe pruner: not read
     table = tables.pruner_training_table(tmp_path)
-    assert ("| `pusht_reference_prior_0.93` | 1 of 20 | - | 1: 0.0900, 0.610 | - / 0.50 / 0.11 | 0.0500 | 0.93 0.61 | "
+    assert ("| `pusht_reference_prior_0.93` | 1 of 20 | - | dense, same noise | 1: 0.0900, 0.610 | - / 0.50 / 0.11 | "
+            "0.0500 | 0.93 0.61 | "
             "0.110 0.090 | - 0.50 |") in table
     assert ("| `pusht_reference_omni_0.93` | 1 of 20 | cuda: NVIDIA H200, float32, from epoch 1 group 1; "
-            "cpu: AMD EPYC, float32, from epoch 1 group 3 | 0: 0.1100, 0.930 |") in table
+            "cpu: AMD EPYC, float32, from epoch 1 group 3 | dense, another draw | 0: 0.1100, 0.930 |") in table
 
 
 def test_visuomotor_table_joins_success_with_latency_and_the_encoder_share(tmp_path):
@@ -327,16 +328,20 @@ def test_training_curves_label_each_reference_pruner_and_take_the_searched_steps
     def write(name, hist):
         (tmp_path / f"{name}.json").write_text(json.dumps({"metadata": {"history": hist, "sparsity": 0.93}}))
     write("pusht-p_reference_prior_0.93", [{"epoch": 0, "val_l1": 0.11}, {"epoch": 1, "val_l1": 0.15}])
-    write("pusht-p_reference_forward-timestep-rollout_0.93", [{"epoch": 1, "val_l1": 0.2}, {"epoch": 2, "val_l1": 0.1}])
+    (tmp_path / "pusht-p_reference_forward-timestep-rollout_0.93.json").write_text(json.dumps(
+        {"metadata": {"history": [{"epoch": 1, "val_l1": 0.2}, {"epoch": 2, "val_l1": 0.1}], "sparsity": 0.93,
+                      "val_l1_dense": 0.05}}))
     write("pusht-p_reference_timestep_0.93", [{"epoch": 1, "val_l1": 0.3}])
-    (tmp_path / "pusht-p_reference_rollout_0.93.json").write_text(json.dumps(
-        {"metadata": {"history": [], "sparsity": 0.93, "val_l1_dense": 0.05}}))
+    write("pusht-p_reference_rollout_0.93", [])
+    (tmp_path / "pusht-p_reference_paired_forward-timestep-rollout_0.93.json").write_text(json.dumps(
+        {"metadata": {"history": [{"epoch": 1, "val_l1": 0.25}], "sparsity": 0.93, "val_l1_dense": 0.0,
+                      "paired": True}}))  # read after the omni run: its dense L1 (0, same noise) is not the floor
     write("pusht-other_reference_rollout_0.93", [{"epoch": 1, "val_l1": 9.0}])  # another policy: not read
     curves, searched, meta = training_curves_of(tmp_path, "pusht-p")
     assert searched == 0.11 and meta["sparsity"] == 0.93 and meta["val_l1_dense"] == 0.05
     assert {k: [h["epoch"] for h in v] for k, v in curves.items()} == {
         "omni, from the searched prior": [1], "omni, from scratch": [1, 2], "timestep only, from scratch": [1],
-        "rollout only, from scratch": []}
+        "rollout only, from scratch": [], "omni, from scratch, paired noise": [1]}
     assert training_curves_of(tmp_path, "lift")[:2] == ({}, None)
 
 
