@@ -317,10 +317,11 @@ def image_frontier(args) -> Path:
     return out
 
 
+PAIRED_LABEL = "omni, from scratch, paired noise"  # its L1 is to the dense action on the same noise
 CURVE_LABELS = {"forward-timestep-rollout": "omni, from scratch", "prior": "omni, from the searched prior",
-                "paired_forward-timestep-rollout": "omni, from scratch, paired noise"}
+                "paired_forward-timestep-rollout": PAIRED_LABEL}
 # how the direction panel draws each omni curve
-DIRECTION_STYLES = {"omni, from scratch": "-", "omni, from the searched prior": "--", "omni, from scratch, paired noise": ":"}
+DIRECTION_STYLES = {"omni, from scratch": "-", "omni, from the searched prior": "--", PAIRED_LABEL: ":"}
 
 
 def training_curves_of(folder: Path, policy: str) -> tuple[dict[str, list[dict]], Optional[float], dict]:
@@ -355,7 +356,7 @@ def training_curves(args) -> Path:
     fig, (ax_l1, ax_sp, ax_dir) = plt.subplots(1, 3, figsize=(15.5, 4.0))
     for label, hist in sorted(curves.items()):
         epochs = [h["epoch"] for h in hist]
-        paired = label.endswith("paired noise")  # its L1 is to the dense action on the same noise
+        paired = label == PAIRED_LABEL
         ax_l1.plot(epochs, [h["val_l1"] for h in hist], "s--" if paired else "o-", ms=3,
                    label=label + (" (L1 on the same noise)" if paired else ""))
         ax_sp.plot(epochs, [h["val_sparsity"] for h in hist], "o-", ms=3, label=label)

@@ -325,17 +325,16 @@ def test_sampler_families_table_pairs_each_sparse_method_with_every_family_as_fa
 def test_training_curves_label_each_reference_pruner_and_take_the_searched_steps_from_the_prior_run(tmp_path):
     from figures import training_curves_of
 
-    def write(name, hist):
-        (tmp_path / f"{name}.json").write_text(json.dumps({"metadata": {"history": hist, "sparsity": 0.93}}))
+    def write(name, hist, **meta):
+        (tmp_path / f"{name}.json").write_text(json.dumps({"metadata": {"history": hist, "sparsity": 0.93, **meta}}))
     write("pusht-p_reference_prior_0.93", [{"epoch": 0, "val_l1": 0.11}, {"epoch": 1, "val_l1": 0.15}])
-    (tmp_path / "pusht-p_reference_forward-timestep-rollout_0.93.json").write_text(json.dumps(
-        {"metadata": {"history": [{"epoch": 1, "val_l1": 0.2}, {"epoch": 2, "val_l1": 0.1}], "sparsity": 0.93,
-                      "val_l1_dense": 0.05}}))
+    write("pusht-p_reference_forward-timestep-rollout_0.93", [{"epoch": 1, "val_l1": 0.2}, {"epoch": 2, "val_l1": 0.1}],
+          val_l1_dense=0.05)
     write("pusht-p_reference_timestep_0.93", [{"epoch": 1, "val_l1": 0.3}])
     write("pusht-p_reference_rollout_0.93", [])
-    (tmp_path / "pusht-p_reference_paired_forward-timestep-rollout_0.93.json").write_text(json.dumps(
-        {"metadata": {"history": [{"epoch": 1, "val_l1": 0.25}], "sparsity": 0.93, "val_l1_dense": 0.0,
-                      "paired": True}}))  # read after the omni run: its dense L1 (0, same noise) is not the floor
+    # read after the omni run: its dense L1 (0, same noise) is not the floor
+    write("pusht-p_reference_paired_forward-timestep-rollout_0.93", [{"epoch": 1, "val_l1": 0.25}], val_l1_dense=0.0,
+          paired=True)
     write("pusht-other_reference_rollout_0.93", [{"epoch": 1, "val_l1": 9.0}])  # another policy: not read
     curves, searched, meta = training_curves_of(tmp_path, "pusht-p")
     assert searched == 0.11 and meta["sparsity"] == 0.93 and meta["val_l1_dense"] == 0.05
