@@ -128,6 +128,14 @@ def _pruner_metadata(method: Method) -> Optional[dict]:
             **{k: v for k, v in md.items() if k in keep}}
 
 
+def _training_note(checkpoint: Path) -> Optional[str]:
+    """What the policy checkpoint says it was trained on (its ``metadata.note``), None when it says nothing."""
+    meta_path = checkpoint_pair(checkpoint)[1]
+    if Path(checkpoint).suffix == ".ckpt" or not meta_path.exists():
+        return None
+    return json.loads(meta_path.read_text()).get("metadata", {}).get("note")
+
+
 def _same_pruner(prev: Optional[dict], now: Optional[dict]) -> bool:
     """Whether a result's pruner (its ``pruner_metadata``) is the one about to run: the same weights (or,
     for a result that predates the weights' digest, the same best epoch)."""
@@ -166,7 +174,7 @@ def report(args, label, seeds, done, latencies, summary, policy, pruner_meta: Op
         "latencies_s": latencies,
         "method_spec": args.method,
         "forecast": args.forecast,
-        "note": "policy trained on scripted-expert demonstrations (uniform, not human data)",
+        "policy_training_note": _training_note(args.checkpoint),
     }
 
 

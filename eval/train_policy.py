@@ -36,7 +36,7 @@ from common.model_training import EMA, restore_training_state, save_training_sta
 
 from tts.adapters.dp_image_policy import CAMERAS, DiffusionTransformerHybridImagePolicy, ImageEncoderConfig  # noqa: E402
 from tts.adapters.dp_policy import DiffusionTransformerLowdimPolicy, PolicyConfig, load_policy, save_policy  # noqa: E402
-from robot_suite.robomimic import read_demos, read_env_args  # noqa: E402
+from robot_suite.robomimic import describe_demonstrators, read_demos, read_env_args  # noqa: E402
 from robot_suite.tasks import OBS_KEYS, TASKS, task_of_env  # noqa: E402
 
 
@@ -215,7 +215,7 @@ def main(argv=None) -> None:
                 obs_type=args.obs_type,
                 batch=args.batch,
                 lr=args.lr, final_loss=float(np.mean(losses[-200:])), train_seconds_this_run=time.time() - t0,
-                note="trained on scripted-expert demonstrations (uniform, not human data)")
+                note=f"trained on demonstrations from {describe_demonstrators(args.data)}")
     save_policy(ema.model, args.out, metadata=meta)
     print(f"saved {args.out}.safetensors / .json (final loss {meta['final_loss']:.4f})")
 

@@ -141,12 +141,14 @@ def test_robot_eval_renders_the_cameras_an_image_policy_reads(lift_demos, tmp_pa
     from test_image_policy import image_policy
     from tts.adapters.dp_policy import save_policy
 
-    save_policy(image_policy(steps=4), tmp_path / "img_policy", dtype=torch.float32)
+    save_policy(image_policy(steps=4), tmp_path / "img_policy", dtype=torch.float32,
+                metadata={"note": "trained on demonstrations from a single scripted expert"})
     out = tmp_path / "run.json"
     args = ["--task", "lift", "--checkpoint", str(tmp_path / "img_policy"), "--episodes", "2", "--n-envs", "2",
             "--horizon", "3", "--out", str(out)]
     res = robot.main(args)
     assert res["obs_type"] == "image" and res["episodes_done"] == 2 and res["batch"] == 2
+    assert res["policy_training_note"] == "trained on demonstrations from a single scripted expert"  # the checkpoint's own
     with pytest.raises(SystemExit):  # argparse's error: "... is an image policy"
         robot.main(args + ["--obs-type", "low_dim"])
 

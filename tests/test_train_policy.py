@@ -1,4 +1,6 @@
 """eval/train_policy.py: a tiny run on a hand-made robomimic file, checked through load_policy."""
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -31,6 +33,8 @@ def test_dropout_reaches_every_residual_branch_of_the_trained_policy(tmp_path, o
     assert all(layer.self_attn.dropout == 0.3 for layer in layers)
     policy.model.eval()
     assert not any(m.training for m in policy.model.modules())  # loaded for inference: dropout off
+    note = json.loads((tmp_path / "policy.json").read_text())["metadata"]["note"]
+    assert "single scripted expert" in note  # no quality masks: one demonstrator
 
 
 def test_a_run_shorter_than_its_warm_up_trains(tmp_path, one_thread):
@@ -62,12 +66,14 @@ def test_push_t_data_trains_on_its_own_observation_keys(tmp_path, one_thread):
     dims = {"agent_pos": 2, "block_keypoints": 16}
     demos = [Demo(obs={k: rng.normal(size=(20, dims[k])) for k in keys}, actions=rng.uniform(0, 512, (20, 2)),
                   rewards=np.arange(20) == 19, dones=np.arange(20) == 19)]
-    write_demos(tmp_path / "d.hdf5", demos, env_args("pusht"))
+    write_demos(tmp_path / "d.hdf5", demos, env_args("pusht"), masks={"better": ["demo_0"], "okay": [], "worse": []})
     train_policy.main(["--data", str(tmp_path / "d.hdf5"), "--out", str(tmp_path / "p"), "--steps", "2",
                        "--width", "16", "--layers", "1", "--heads", "2", "--batch", "4", "--run-dir", str(tmp_path / "r")])
     policy = load_policy(tmp_path / "p")
     assert list(policy.cfg.obs_keys) == list(keys) and list(policy.cfg.obs_dims) == [2, 16]
     assert policy.cfg.action_dim == 2
+    note = json.loads((tmp_path / "p.json").read_text())["metadata"]["note"]
+    assert "mixed quality" in note and "single" not in note  # robomimic's MH quality masks: several operators
 
 
 def test_warm_start_copies_weights_and_refuses_another_architecture(tmp_path, one_thread):

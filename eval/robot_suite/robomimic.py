@@ -22,7 +22,7 @@ from typing import Iterable, Optional, Sequence
 
 import numpy as np
 
-__all__ = ["Demo", "write_demos", "read_demos", "read_env_args", "read_masks"]
+__all__ = ["Demo", "write_demos", "read_demos", "read_env_args", "read_masks", "describe_demonstrators"]
 
 
 @dataclass
@@ -94,6 +94,14 @@ def read_masks(path: Path) -> dict[str, list[str]]:
         if "mask" not in f:
             return {}
         return {name: [k.decode() for k in f["mask"][name][()]] for name in f["mask"]}
+
+
+def describe_demonstrators(path: Path) -> str:
+    """Who made a dataset's demonstrations, from its filter keys: robomimic's quality masks (``better``,
+    ``okay``, ``worse``) mark a mix of operators; without them the data is one demonstrator's."""
+    if {"better", "okay", "worse"} <= read_masks(path).keys():
+        return "scripted operators of mixed quality in robomimic MH proportions (more regular than human operators)"
+    return "a single scripted expert (uniform, not human data)"
 
 
 def read_demos(path: Path, obs_keys: Optional[Sequence[str]] = None, filter_key: Optional[str] = None,
