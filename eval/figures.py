@@ -320,8 +320,8 @@ def image_frontier(args) -> Path:
 PAIRED_LABEL = "omni, from scratch, paired noise"  # its L1 is to the dense action on the same noise
 CURVE_LABELS = {"forward-timestep-rollout": "omni, from scratch", "prior": "omni, from the searched prior",
                 "paired_forward-timestep-rollout": PAIRED_LABEL}
-# how the direction panel draws each omni curve
-DIRECTION_STYLES = {"omni, from scratch": "-", "omni, from the searched prior": "--", PAIRED_LABEL: ":"}
+# how the direction panel draws each omni curve (marker and line, so runs stay apart where the lines overlap)
+DIRECTION_STYLES = {"omni, from scratch": "o-", "omni, from the searched prior": "^--", PAIRED_LABEL: "s:"}
 
 
 def training_curves_of(folder: Path, policy: str) -> tuple[dict[str, list[dict]], Optional[float], dict]:
@@ -366,7 +366,7 @@ def training_curves(args) -> Path:
                 if not rows:
                     continue
                 ax_dir.plot([h["epoch"] for h in rows], [h[f"val_reuse_{d}"] for h in rows],
-                            "o" + DIRECTION_STYLES.get(label, "-."), ms=3, color=color,
+                            DIRECTION_STYLES.get(label, "d-."), ms=3, color=color,
                             label=f"{d} ({label})")
     if searched is not None:
         ax_l1.axhline(searched, color="k", ls="--", lw=1, label="searched steps (the prior)")
