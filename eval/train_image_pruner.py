@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import parse_args  # noqa: E402
-from common.training_args import add_training_args, training_metadata  # noqa: E402
+from common.training_args import add_training_args, exit_when_stopped, training_metadata  # noqa: E402
 from image_suite.sampling import index_seed  # noqa: E402
 
 import tts  # noqa: E402
@@ -118,8 +118,8 @@ def main(argv=None) -> dict:
 
     meta = dict(training_metadata(args), n_train_samples=len(train_idx), n_val_samples=len(val_idx),
                 data_seed=data_seed)
-    return fit(pruner, config, train_epoch=train_epoch, validate=validate, metadata=meta,
-               steps=args.steps, memory_tokens=1)
+    return exit_when_stopped(lambda: fit(pruner, config, train_epoch=train_epoch, validate=validate, metadata=meta,
+                                         steps=args.steps, memory_tokens=1))
 
 
 if __name__ == "__main__":

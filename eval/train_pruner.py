@@ -10,8 +10,9 @@ the full K-step sampler with straight-through gates and minimises L1(sparse acti
 action_pred) + lambda * |reuse fraction - sparsity| per sample. ``--paired`` replays each frame's
 recorded noise seed; the default, like the paper, uses fresh noise. Validation uses test-time argmax
 decisions (``--val-mode``). The best epoch (validation L1 + lambda * |sparsity error|) is written as
-``<out>.safetensors/.json``; state is saved every epoch under ``runs/<out name>/`` and ``--resume``
-continues from it. Every option is the field of the same name of
+``<out>.safetensors/.json``; state is saved after every group of episodes under ``runs/<out name>/``
+(``--run-dir``) and ``--resume`` continues from it. Creating the file ``STOP`` in that directory stops
+the run at its next save (exit status 3), with nothing lost. Every option is the field of the same name of
 :class:`tts.policy_training.PolicyPrunerTrainingConfig`.
 """
 from __future__ import annotations
@@ -24,7 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import add_all_episodes_option, add_device_option, parse_args, torch_device  # noqa: E402
-from common.training_args import add_training_args, training_metadata  # noqa: E402
+from common.training_args import add_training_args, exit_when_stopped, training_metadata  # noqa: E402
 
 from tts.adapters.dp_policy import load_policy  # noqa: E402
 from tts.policy_training import PolicyPrunerTrainingConfig, build_policy_pruner, train_policy_pruner  # noqa: E402
@@ -74,7 +75,7 @@ def main(argv=None) -> None:
     meta = training_metadata(args)
     meta.update(policy=str(args.checkpoint), trajectory_collection=traj_meta.get("command"))
     pruner = build_policy_pruner(policy, config).to(device)
-    train_policy_pruner(policy, episodes, config, pruner=pruner, metadata=meta)
+    exit_when_stopped(lambda: train_policy_pruner(policy, episodes, config, pruner=pruner, metadata=meta))
 
 
 if __name__ == "__main__":

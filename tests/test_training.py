@@ -1,5 +1,6 @@
 """Pruner training as library code: the config object, the policy trainer, the resumable loop."""
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from tts.policy_training import PolicyPrunerTrainingConfig, train_policy_pruner
 from tts.pruner import Pruner, PrunerConfig
 from tts.trajectories import load_trajectories
 from tts.io import device_name
-from tts.training import PrunerTrainingConfig, fit, read_grid
+from tts.training import PrunerTrainingConfig, TrainingStopped, fit, read_grid
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -74,7 +75,7 @@ class Interrupted(Exception):
     pass
 
 
-def _toy_run(config, interrupt_at=None, trained=None, hidden=8, interrupt_at_group=None):
+def _toy_run(config, interrupt_at=None, trained=None, hidden=8, interrupt_at_group=None, stop_at_group=None):
     """fit() on a small pruner whose epochs use the shuffle rng, the noise generator and dropout (the
     global generator), i.e. every random state an exact resume must restore."""
     torch.manual_seed(0)
@@ -99,6 +100,8 @@ def _toy_run(config, interrupt_at=None, trained=None, hidden=8, interrupt_at_gro
             loss.backward()
             opt.step()
             rows.append({"l1": float(loss.detach()), "sparsity": 0.5, "frames": len(idx)})
+            if (epoch, g) == stop_at_group:  # a stop requested while this group trained
+                config.stop_path.touch()
             progress.done(rows)
         return rows
 
@@ -159,6 +162,52 @@ def test_resume_inside_an_epoch_skips_the_trained_groups_and_matches_an_uninterr
     assert [h["train_l1"] for h in whole["history"]] == [h["train_l1"] for h in cut["history"]]
     assert cut["partial"] is None
     assert cut["precision_log"] == [{"epoch": 0, "groups": 0, "precision": "float32", "device": device_name("cpu")}]
+
+
+def test_a_requested_stop_ends_the_run_at_its_next_save_and_the_resume_matches_an_uninterrupted_run(tmp_path):
+    def config(name, **kw):
+        return PrunerTrainingConfig(out=tmp_path / name, run_dir=tmp_path / f"run_{name}", directions="timestep",
+                                    sparsity=0.5, epochs=3, lr=0.05, **kw)
+
+    _toy_run(config("whole"))
+    cut = config("cut")
+    assert cut.stop_path == tmp_path / "run_cut" / "STOP"
+    trained = []
+    with pytest.raises(TrainingStopped, match=r"in epoch 2 of 3 after 2 groups.*resume"):
+        _toy_run(cut, trained=trained, stop_at_group=(1, 1))
+    assert trained[-1] == (1, 1) and not cut.stop_path.exists()  # the request is used up
+    state = torch.load(cut.state_path, weights_only=False)
+    assert state["epoch"] == 1 and state["partial"]["groups"] == 2  # the group in progress was saved first
+    trained.clear()
+    _toy_run(config("cut", resume=True), trained=trained)
+    assert trained == [(1, 2), (1, 3)] + [(2, g) for g in range(4)]
+    whole, done = (torch.load(tmp_path / f"run_{n}" / "pruner_state.pt", weights_only=False) for n in ("whole", "cut"))
+    for k, a in whole["pruner"].items():
+        assert torch.equal(a, done["pruner"][k]), k
+    assert [h["val_score"] for h in whole["history"]] == [h["val_score"] for h in done["history"]]
+
+
+def test_a_stop_request_left_before_the_run_starts_is_removed_not_obeyed(tmp_path):
+    config = PrunerTrainingConfig(out=tmp_path / "p", run_dir=tmp_path / "run", directions="timestep",
+                                  sparsity=0.5, epochs=2, lr=0.05)
+    config.stop_path.parent.mkdir(parents=True)
+    config.stop_path.touch()
+    _toy_run(config)  # trains both epochs
+    assert not config.stop_path.exists()
+    assert [h["epoch"] for h in tts.load_pruner(tmp_path / "p").metadata["history"]] == [1, 2]
+
+
+def test_a_trainer_stopped_on_request_exits_with_its_own_status():
+    sys.path.insert(0, str(REPO / "eval"))
+    from common.training_args import STOPPED_STATUS, exit_when_stopped
+
+    def stopped():
+        raise TrainingStopped("stopped in epoch 1 of 2 after 1 groups")
+
+    with pytest.raises(SystemExit) as e:
+        exit_when_stopped(stopped)
+    assert e.value.code == STOPPED_STATUS != 0
+    assert exit_when_stopped(lambda: 7) == 7
 
 
 def test_a_resume_may_change_the_precision_and_the_change_is_recorded(tmp_path):

@@ -14,6 +14,10 @@ training and one validation pass do depends on the backbone and is passed in as 
 then, and a resumed run skips the first ``progress.skip`` groups, whose rows are ``progress.rows``,
 with the shuffle, noise and dropout generators where the interrupted run had them).
 
+A stop can be requested while a run trains: create the file ``<run_dir>/STOP`` (:attr:`PrunerTrainingConfig.stop_path`).
+The run stops at its next save (after the batch group, or the epoch, in progress), removes the file
+and raises :class:`TrainingStopped`; ``resume=True`` continues it with nothing lost.
+
 The score of an epoch is val L1 + ``lam`` * |val sparsity - ``sparsity``|. The best epoch's weights
 are written as ``<out>.safetensors/.json`` after every epoch (with the history so far and the
 metadata passed in), and the full state (pruner, optimizer, schedule, random generators) under
@@ -38,7 +42,8 @@ from .plans import COMPUTE, DIRECTIONS, check_directions, check_sparsity, from_t
 from .pruner import PrunerModule, PrunerPlan, save_pruner
 from .static_search import steps_grid
 
-__all__ = ["EpochProgress", "GridSource", "PRECISIONS", "PrunerTrainingConfig", "RecordingPlan", "fit", "mean_of", "read_grid", "training_finished"]
+__all__ = ["EpochProgress", "GridSource", "PRECISIONS", "PrunerTrainingConfig", "RecordingPlan", "TrainingStopped", "fit",
+           "mean_of", "read_grid", "training_finished"]
 
 # a decision grid [K, nb]: a schedule JSON path (eval/search_static.py), "every_n:N", a tensor of codes,
 # or one "CFTR" string per step
@@ -141,6 +146,11 @@ class PrunerTrainingConfig:
     def state_path(self) -> Path:
         """Where the resumable training state is saved: ``<run_dir>/pruner_state.pt``."""
         return (self.run_dir or Path("runs") / self.out.name) / "pruner_state.pt"
+
+    @property
+    def stop_path(self) -> Path:
+        """The file that requests a stop at the next save: ``<run_dir>/STOP`` (see :class:`TrainingStopped`)."""
+        return self.state_path.parent / "STOP"
 
     def to_json(self) -> dict[str, Any]:
         """The options as JSON values (paths as strings, a grid as one "CFTR" string per step)."""
@@ -253,6 +263,11 @@ def _precision_log(state: Optional[dict], epoch: int, config: PrunerTrainingConf
     return log
 
 
+class TrainingStopped(Exception):
+    """Raised by :func:`fit` when a stop was requested (:attr:`PrunerTrainingConfig.stop_path` exists),
+    right after the resumable state was saved: ``resume=True`` continues the run where it stopped."""
+
+
 class EpochProgress:
     """Where an epoch stands: ``skip`` groups already trained (their rows in ``rows``, from an
     interrupted run); ``done(rows)`` after each group saves a resumable state."""
@@ -302,6 +317,9 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         epoch, history, best, best_state = st["epoch"], st["history"], st["best"], st["best_state"]
         say(f"resumed after epoch {epoch}")
     precision_log = _precision_log(st, epoch, config, device_name(next(pruner.parameters()).device), say)
+    if config.stop_path.exists():  # left by a run that ended before its next save
+        config.stop_path.unlink()
+        say(f"removed a stale stop request ({config.stop_path})")
 
     def score(row: dict) -> float:
         return row["val_l1"] + config.lam * abs(row["val_sparsity"] - config.sparsity)
@@ -340,6 +358,12 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
                         "pruner_config": asdict(pruner.config), "config": config.to_json(), "partial": mid,
                         "precision_log": precision_log}, tmp)
 
+    def stop_if_requested(where: str) -> None:
+        if config.stop_path.exists():
+            config.stop_path.unlink()
+            raise TrainingStopped(f"stopped {where}, as {config.stop_path} asked; the state is saved in "
+                                  f"{state_path}: resume to continue")
+
     for epoch in range(epoch, config.epochs):
         pruner.train()
         if partial is not None:  # the interrupted epoch: its shuffle again (the generators of noise and
@@ -355,6 +379,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
             rng.bit_generator.state = start
             save_state(done_epochs, mid)
             rng.bit_generator.state = shuffled
+            stop_if_requested(f"in epoch {done_epochs + 1} of {config.epochs} after {len(rows)} groups")
 
         stats = train_epoch(opt, rng, noise_rng, epoch, EpochProgress(skip, progress_rows, save_partial))
         lr = opt.param_groups[0]["lr"]
@@ -379,6 +404,8 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         pruner.load_state_dict(best_state)
         save_pruner(pruner, config.out, metadata=meta)
         pruner.load_state_dict(current)
+        if epoch + 1 < config.epochs:
+            stop_if_requested(f"after epoch {epoch + 1} of {config.epochs}")
     pruner.load_state_dict(best_state)
     if meta is not None:
         pruner.metadata = meta

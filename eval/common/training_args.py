@@ -4,13 +4,18 @@ trainers add ``--n-train`` / ``--n-val`` with their own defaults)."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
+from typing import Callable, TypeVar
 
 import tts
 from common import provenance
-from tts.training import PRECISIONS
+from tts.training import PRECISIONS, TrainingStopped
 
-__all__ = ["add_training_args", "training_metadata"]
+__all__ = ["STOPPED_STATUS", "add_training_args", "exit_when_stopped", "training_metadata"]
+
+STOPPED_STATUS = 3  # exit status of a trainer stopped on request (its state saved; --resume continues it)
+T = TypeVar("T")
 
 
 def add_training_args(ap: argparse.ArgumentParser, *, sparsity: float, directions: str, batch: int) -> None:
@@ -68,3 +73,14 @@ def training_metadata(args: argparse.Namespace) -> dict:
     meta = provenance(seeds={"train": args.seed})
     meta.update({k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()})
     return meta
+
+
+def exit_when_stopped(train: Callable[[], T]) -> T:
+    """``train()``; a run stopped on request (the STOP file in its run directory,
+    :class:`tts.training.TrainingStopped`) ends the process with its message and exit status
+    :data:`STOPPED_STATUS`, so that a script does not take it for a finished training."""
+    try:
+        return train()
+    except TrainingStopped as e:
+        print(e, file=sys.stderr)
+        raise SystemExit(STOPPED_STATUS) from None
