@@ -17,7 +17,8 @@
 #             omni-paired: the omni recipe with the dense call's own noise as target (--paired),
 #             whose loss no longer rewards an action between the modes. A
 #             reference-length training is hours on 2 CPU cores (on a GPU, DEVICE=cuda); each resumes from its state_dir (recipes/lib.sh) after
-#             an interruption. PRUNERS picks
+#             an interruption, and `touch checkpoints/in_progress/<pruner name>/STOP` stops it (and the
+#             recipe) right after its next saved group. PRUNERS picks
 #             some of "omni prior forward timestep rollout omni-paired" (e.g. two at once with THREADS=1 each)
 #   analysis  the prior pruner's agreement with the prior on held-out episodes, the oracle headroom
 #             around the searched steps, the spread of each finished row's actions across noise draws
