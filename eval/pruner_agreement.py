@@ -1,7 +1,7 @@
 """How often a pruner's test-time decisions equal the schedule it started from (``--prior``).
 
     python eval/pruner_agreement.py --task lift --checkpoint checkpoints/lift_dpt \
-        --pruner checkpoints/pruners/lift_tts_steps_0.93 --trajectories data/trajectories/lift.pt --sparsity 0.93
+        --pruner checkpoints/pruners/lift_tts_0.93 --trajectories data/trajectories/lift.pt --sparsity 0.93
 
 Replays the recorded episodes the pruner was not trained on (index >= its ``n_train``: its
 validation episodes, which only chose the epoch, and any later ones; or ``--first-episode``) in lockstep with their recorded noise through the pruner (exact budget with

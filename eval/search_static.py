@@ -11,7 +11,7 @@ Runs dense calls on ``--calls`` recorded observation windows of the *training* t
 first ``--episodes``; never the test seeds), measures per branch how much its output changes between
 denoising steps (:func:`tts.static_search.reuse_errors`) and picks per branch the compute steps that
 hide the least change (:func:`tts.static_search.search_schedule`). Writes the decision grid (one
-``C``/``T`` string per step), usable as ``eval/robot.py --method static --plan file:PATH``.
+``C``/``T`` string per step), usable as ``eval/robot.py --method file:PATH``.
 
 ``--objective output`` searches instead one set of compute steps shared by every branch
 (:func:`tts.static_search.search_compute_steps`): the loss is the L1 between the final output

@@ -666,7 +666,7 @@ def headline_robot(folder: Path) -> str:
             "|---|---|---|---|---|---|---|"]
     for task, methods in HEADLINE_ROBOT.items():
         points = {p.method: p for p in frontier.frontier_points(folder, task, 1)}
-        for batch in (1, 28):  # the frontier's one-process latencies replace older separate measurements
+        for batch in (1, 28):  # the frontier's one-process latencies take precedence over latency_*.json
             for p in frontier.frontier_points(folder, task, batch):
                 if p.method != "dense":
                     speed.setdefault((task, p.method), {})[batch] = p.speedup
@@ -701,7 +701,7 @@ def headline_image(folder: Path) -> str:
     docs/results/image.md). MACs are against the dense 50-step run, also for a run on fewer steps."""
     speed: dict[str, dict[int, float]] = {}
     frontier_lat = folder / "frontier_latency.json"
-    for path in (folder / "latency.json", frontier_lat):  # the frontier's latencies replace the older ones
+    for path in (folder / "latency.json", frontier_lat):  # frontier_latency.json takes precedence over latency.json
         for row in json.loads(path.read_text())["rows"] if path.exists() else []:
             for name, m in row["methods"].items():
                 speed.setdefault(name, {})[row["batch"]] = m["speedup"]

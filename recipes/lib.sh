@@ -4,8 +4,9 @@ source "$(dirname "${BASH_SOURCE[0]}")/../scripts/env.sh"
 
 # state_dir NAME: where a recipe's long training keeps its resumable state (optimizer, step, RNGs).
 # It is tracked, not ignored: a new checkout of the repository has no ignored files, so the state of an
-# interrupted training survives on another checkout only if it is committed. Commit it when you stop;
-# each recipe deletes it (finish_state) once its training has finished.
+# interrupted training survives on another checkout only if it is committed. Commit it once, when you
+# stop, not after every epoch: each committed version of a ~50 MB state adds its full size to what a
+# push carries. Each recipe deletes it (finish_state) once its training has finished.
 state_dir() { echo "checkpoints/in_progress/$1"; }
 
 # finish_state NAME: drop NAME's resumable state once its training has written its final checkpoint.

@@ -23,6 +23,7 @@ The policy is the bundled one (:mod:`tts.adapters.dp_policy`) or anything with i
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
 import numpy as np
@@ -54,7 +55,7 @@ class PolicyPrunerTrainingConfig(PrunerTrainingConfig):
     init_schedule: Optional[GridSource] = None
 
     @classmethod
-    def reference(cls, out, **overrides) -> "PolicyPrunerTrainingConfig":
+    def reference(cls, out: Union[str, Path], **overrides: Any) -> "PolicyPrunerTrainingConfig":
         """The reference implementation's recipe: pruner hidden 512, 8 heads, FF 1024, head bias
         zero (argmax starts near uniform over the options, not from a prior), AdamW lr 1e-4 and weight
         decay 1e-4, warm-up then linear decay, no gradient clipping, batches of 16 episodes, 20 epochs,
