@@ -360,7 +360,7 @@ def training_curves(args) -> Path:
         ax_l1.plot(epochs, [h["val_l1"] for h in hist], "s--" if paired else "o-", ms=3,
                    label=label + (" (L1 on the same noise)" if paired else ""))
         ax_sp.plot(epochs, [h["val_sparsity"] for h in hist], "o-", ms=3, label=label)
-        if label.startswith("omni"):  # which direction the reuse decisions take (rows without val_reuse_<d> are not drawn)
+        if label.startswith("omni"):  # which direction the reuse decisions take, where a row records it
             for d, color in zip(("forward", "timestep", "rollout"), COLORS[1:]):
                 rows = [h for h in hist if f"val_reuse_{d}" in h]
                 if not rows:
