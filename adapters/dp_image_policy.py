@@ -16,7 +16,7 @@ CPU). Parameter names follow robomimic where practical (``obs_encoder.obs_nets.<
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
@@ -202,10 +202,6 @@ class DiffusionTransformerHybridImagePolicy(DiffusionTransformerLowdimPolicy):
         t = torch.randint(0, self.cfg.num_train_timesteps, (a.shape[0],), device=a.device)
         noisy = self.scheduler.add_noise(a, noise, t)
         return nn.functional.mse_loss(self.model(noisy, t, cond), noise)
-
-    def config_dict(self) -> dict:
-        """The image encoder's options, for the checkpoint."""
-        return {"image_encoder": asdict(self.image_cfg)}
 
 
 _TRANSFORMER_DEFAULTS = dict(n_layer=8, n_cond_layers=0, n_head=4, n_emb=256, p_drop_emb=0.0, p_drop_attn=0.3,

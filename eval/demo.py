@@ -65,8 +65,8 @@ def main(argv=None) -> None:
     ap.add_argument("--engine", action="store_true", help="engine benchmark on random-weight models instead")
     ap.add_argument("--threads", type=int, default=1,
                     help="torch threads of the robot demo (default 1: a policy this small gains little from a "
-                         "second thread, and on some hosts waking it after every batch of env steps cost more "
-                         "than a short call, which distorted the speed-ups)")
+                         "second thread, and waking it after every batch of env steps can cost more than a "
+                         "short call, which distorts the speed-ups)")
     args = ap.parse_args(argv)
     torch.manual_seed(0)
     if args.engine:

@@ -5,7 +5,7 @@
 # ALL_EPISODES=1), every method on the same test episodes (SEEDS,
 # default 3 x 50) and timed against one dense reference in one process (eval/frontier_latency.py,
 # batch 1 and 28). Methods: dense DDPM-100; DDIM-k (k = 2 3 4 5 7 10 16), trailing DDIM-k (2 3 5 7 10),
-# DPM-Solver++-k (2 3 5 6 7 10 16 20: the best sampler at the latency of every sparse point), the
+# DPM-Solver++-k (2 3 5 6 7 10 16 20: a step count near the latency of every sparse point), the
 # policy's own stochastic DDPM on k steps (3 5 7 10 16 20: it keeps DDPM's fresh noise per step); searched whole steps at 90-98% on DDPM-100; the TTS step pruner served at
 # those budgets; TTS on DDIM-20 and DDIM-10 bases at 7 computed steps (uniform and searched); the
 # BAC-style schedule, uniform and FORA-interval timestep reuse at 93%. Resumable; a full run is

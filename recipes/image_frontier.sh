@@ -6,7 +6,7 @@
 # (RHO 0.6, 0.8), the searched steps and the TTS step pruner (order-2 forecasting) served at RHO 0.6-0.9.
 # On the 20-step base (+ddim:20): FORA (N = 2 3), TaylorSeer (N = 3), ToCa and DuCa (0.6), the searched
 # steps at RHO 0.5 and the TTS step pruner trained on them. A run is skipped when its JSON has a FID
-# interval (older runs without one are redone). About 5-10 min per FID run on 2 quiet CPU cores (4-5 of
+# interval (one without it is redone). About 5-10 min per FID run on 2 quiet CPU cores (4-5 of
 # them the Inception pass), hours in all; PARTS=runs,latency picks stages; NPROC=1 samples in one process
 # (next to another job). The 20-step base's schedule and pruner are made when its first run comes. Then
 # the figure docs/frontier_digits.png and eval/tables.py

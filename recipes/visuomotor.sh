@@ -4,7 +4,7 @@
 # image layout (eval/render_demos.py: agentview and wrist cameras, 84x84; about 0.15 s per frame on 2
 # CPU cores), the image DP-T trained on them (eval/train_policy.py --obs-type image: ResNet-18 trunk of
 # width ENCODER_WIDTH, default 16, random 76x76 crops, the proprioception keys; 6000 steps at batch 64
-# (checkpoints/<task>_image_dpt: below the 90% Lift target, see docs/results/visuomotor.md), then MORE_STEPS (default
+# (checkpoints/<task>_image_dpt), then MORE_STEPS (default
 # 8000) more from those weights with a fresh learning-rate cycle (checkpoints/<task>_image_dpt_14k),
 # and with FURTHER_STEPS (e.g. 8000) that many more again (checkpoints/<task>_image_dpt_22k), which
 # then is the policy of every stage below; resumable; DEVICE=cuda trains on a GPU), 112 recorded trajectories with their camera windows (the
@@ -13,7 +13,7 @@
 # pruner,success,latency; PARTS=train stops once the policy is trained):
 # - pruner: the step-level TTS pruner at 93% as robot_table.sh trains it (recipes/lib.sh steps_recipe:
 #   from the searched steps, timestep and rollout reuse, 3 epochs), trained on the recorded camera
-#   windows of the successful episodes (98 of the 112: 82 train, 16 validation; a failed episode
+#   windows of the successful episodes (16 of them for validation, the rest for training; a failed episode
 #   runs 50 calls against about 7, and a lockstep group runs to its longest episode);
 # - success: dense, the searched 93% steps, DDIM-7, DPM-Solver++-7, DDIM-3, DPM-Solver++-3, the
 #   policy's own stochastic DDPM on 3 steps and the pruner (once

@@ -1,4 +1,4 @@
-# Sourced on a GPU machine that has PyTorch but no project install and no network (e.g. a lent cloud
+# Sourced on a GPU machine that has PyTorch but no project install and no network (e.g. an offline cloud
 # GPU): installs the wheels in .whl/ (diffusers and what it needs beyond the machine's packages) under
 # build/gpu/site and puts the package from this checkout (as build/gpu/pkg/tts) on PYTHONPATH. Set
 # TTS_GIT_SHA to the commit sent: results record it as their git SHA (the copy's own .git may be

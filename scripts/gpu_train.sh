@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A stretch of a resumable training (eval/train_pruner.py or eval/train_policy.py) on a GPU machine
-# that has PyTorch but no project install and no network (e.g. a lent cloud GPU), for BUDGET seconds
+# that has PyTorch but no project install and no network (e.g. an offline cloud GPU), for BUDGET seconds
 # (default 500):
 #   BUDGET=500 OUT=FOLDER bash scripts/gpu_train.sh eval/train_pruner.py TRAINER_ARGS...
 # The arguments are the trainer's, with --run-dir and --resume (as the recipes give them); --device

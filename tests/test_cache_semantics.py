@@ -295,7 +295,9 @@ def test_new_call_detected_from_timestep_and_explicitly():
                 model(x, torch.tensor(0.1 * k), ids)
     assert [len(c.steps) for c in acc.summary().calls][-2:] == [3, 3]
     acc.new_call()
+    assert acc.step_index == 0
     with torch.no_grad():
         for k in range(2):
             model(x, torch.tensor(0.0), ids)  # same timestep: only explicit boundaries split calls
+            assert acc.step_index == k + 1
     assert len(acc.summary().calls[-1].steps) == 2

@@ -292,8 +292,9 @@ class Accelerator:
 
     @property
     def step_index(self) -> int:
-        """Index of the next denoising step within the current call."""
-        return self.tracker.k
+        """Index of the next denoising step within the current call (0 after ``new_call()``; where
+        calls are found by timestep motion, a forward whose timestep starts a new call is step 0)."""
+        return 0 if self.tracker.pending else self.tracker.k
 
     def summary(self) -> Summary:
         """Decisions, realised sparsity and MACs of the recorded calls."""
