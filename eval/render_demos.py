@@ -83,8 +83,9 @@ def main(argv=None) -> dict:
     masks = {k: [n for n in v if n in kept] for k, v in read_masks(args.data).items()}
     parts = args.out.with_name(args.out.name + ".parts")
     parts.mkdir(parents=True, exist_ok=True)
+    # parts rendered under another key render again
     key = {"data": str(args.data), "data_bytes": args.data.stat().st_size, "cameras": args.cameras,
-           "size": args.size, "chunk": args.chunk, "difference": "per key"}  # parts rendered under another key render again
+           "size": args.size, "chunk": args.chunk, "difference": "per key"}
     env = make_env(task, cameras=args.cameras, image_size=args.size)
     rendered, worst, frames, seconds = [], {}, 0, 0.0
     for start in tqdm(range(0, len(demos), args.chunk), desc=f"render {task}"):
