@@ -104,7 +104,7 @@ if [[ $parts == *analysis* ]]; then
     ! trained "$name" || spread+=("pruner:checkpoints/pruners/$name")
   done
   python eval/sample_spread.py --task "$TASK" --checkpoint "$CKPT" --trajectories "$TRAJ" --methods "${spread[@]}" \
-      --threads "${THREADS:-2}" --resume $(all_episodes)
+      --threads "${THREADS:-2}" --resume --all-episodes
   ! compgen -G "checkpoints/pruners/${policy}_reference_*.json" >/dev/null \
       || python eval/figures.py training-curves --task "$TASK" --checkpoint "$CKPT"
   ! trained "$omni" || [ -f "docs/${policy}_pruning_masks.png" ] \
