@@ -42,7 +42,9 @@ TRAJ=data/trajectories/${policy}_full.pt
 steps=results/schedules/${policy}_steps_0.93.json
 early=results/schedules/${policy}_steps_0.93_rollout_early.json
 # need_steps: the 112 full-horizon trajectories, the searched steps and their rollout-early variant,
-# made on first use only, so the rows that need none of them run first on a new checkout.
+# made on first use only, so the rows that need none of them run first on a new checkout. While a
+# column's pruners train, commit its trajectories (git add -f "$TRAJ", about 5 MB): collected again on
+# another checkout, round-off changes some rollouts, and a resumed run would train on other episodes.
 need_steps() {
   [ -f "$TRAJ" ] || python eval/collect_trajectories.py --task "$TASK" --checkpoint "$CKPT" --episodes 112 \
       --full-horizon --out "$TRAJ" --resume --threads "${THREADS:-2}"

@@ -3,6 +3,7 @@ import json
 import sys
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -75,9 +76,11 @@ class Interrupted(Exception):
     pass
 
 
-def _toy_run(config, interrupt_at=None, trained=None, hidden=8, interrupt_at_group=None, stop_at_group=None):
+def _toy_run(config, interrupt_at=None, trained=None, hidden=8, interrupt_at_group=None, stop_at_group=None,
+             clock=None):
     """fit() on a small pruner whose epochs use the shuffle rng, the noise generator and dropout (the
-    global generator), i.e. every random state an exact resume must restore."""
+    global generator), i.e. every random state an exact resume must restore. ``clock``: a one-item
+    list that each trained group advances by 100 (seconds of a fake clock)."""
     torch.manual_seed(0)
     pruner = Pruner(PrunerConfig(memory_dim=8, num_branches=3, directions=("timestep",), hidden=hidden, heads=2,
                                  ffn=16, dropout=0.2))
@@ -94,6 +97,8 @@ def _toy_run(config, interrupt_at=None, trained=None, hidden=8, interrupt_at_gro
                 raise Interrupted
             if trained is not None:
                 trained.append((epoch, g))
+            if clock is not None:
+                clock[0] += 100.0
             noisy = memory[idx] + 0.1 * torch.randn(len(idx), 4, 2, 8, generator=noise_rng)
             loss = (pruner(noisy).softmax(-1)[..., 0] - 0.3).abs().mean()
             opt.zero_grad()
@@ -142,18 +147,20 @@ def test_resume_after_an_interrupted_epoch_continues_from_the_saved_state(tmp_pa
         _toy_run(replace(config("cut", resume=True), lr=0.01))
 
 
-def test_resume_inside_an_epoch_skips_the_trained_groups_and_matches_an_uninterrupted_run(tmp_path):
+def test_resume_inside_an_epoch_skips_the_trained_groups_and_matches_an_uninterrupted_run(tmp_path, monkeypatch):
     def config(name, **kw):
         return PrunerTrainingConfig(out=tmp_path / name, run_dir=tmp_path / f"run_{name}", directions="timestep",
                                     sparsity=0.5, epochs=3, lr=0.05, **kw)
 
-    _toy_run(config("whole"))
+    clock = [0.0]
+    monkeypatch.setattr(tts.training, "time", SimpleNamespace(time=lambda: clock[0]))
+    _toy_run(config("whole"), clock=clock)
     with pytest.raises(Interrupted):  # epoch 1 done; epoch 2 interrupted after two of its four groups
-        _toy_run(config("cut"), interrupt_at_group=(1, 2))
+        _toy_run(config("cut"), interrupt_at_group=(1, 2), clock=clock)
     state = torch.load(tmp_path / "run_cut" / "pruner_state.pt", weights_only=False)
     assert state["epoch"] == 1 and state["partial"]["groups"] == 2
     trained = []
-    _toy_run(config("cut", resume=True), trained=trained)
+    _toy_run(config("cut", resume=True), trained=trained, clock=clock)
     assert trained == [(1, 2), (1, 3)] + [(2, g) for g in range(4)]
     whole, cut = (torch.load(tmp_path / f"run_{n}" / "pruner_state.pt", weights_only=False) for n in ("whole", "cut"))
     for k, a in whole["pruner"].items():  # the same shuffles, noise and dropout as the uninterrupted run
@@ -161,6 +168,8 @@ def test_resume_inside_an_epoch_skips_the_trained_groups_and_matches_an_uninterr
     assert [h["val_score"] for h in whole["history"]] == [h["val_score"] for h in cut["history"]]
     assert [h["train_l1"] for h in whole["history"]] == [h["train_l1"] for h in cut["history"]]
     assert cut["partial"] is None
+    # the training time counts the groups trained before the interruption too, as a whole run's does
+    assert cut["history"][-1]["train_seconds"] == whole["history"][-1]["train_seconds"] == 1200
     assert cut["precision_log"] == [{"epoch": 0, "groups": 0, "precision": "float32", "device": device_name("cpu")}]
 
 

@@ -348,7 +348,10 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
     for k, v in config.to_json().items():
         base.setdefault(k, v)
     meta = None
-    t_start, train_seconds = time.time(), (history[-1].get("train_seconds", 0.0) if history else 0.0)
+    # seconds spent training so far; a state saved mid-epoch also counts that epoch's trained groups
+    train_seconds = (st["train_seconds"] if st is not None and "train_seconds" in st
+                     else history[-1].get("train_seconds", 0.0) if history else 0.0)
+    t_start = time.time()
 
     def save_state(done_epochs: int, mid: Optional[dict]) -> None:
         with atomic_path(state_path) as tmp:
@@ -356,7 +359,7 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
                         "epoch": done_epochs, "history": history, "best": best, "best_state": best_state,
                         "rng": (rng.bit_generator.state, noise_rng.get_state()), "torch_rng": torch.get_rng_state(),
                         "pruner_config": asdict(pruner.config), "config": config.to_json(), "partial": mid,
-                        "precision_log": precision_log}, tmp)
+                        "precision_log": precision_log, "train_seconds": train_seconds + time.time() - t_start}, tmp)
 
     def stop_if_requested(where: str) -> None:
         if config.stop_path.exists():
