@@ -349,8 +349,9 @@ def fit(pruner: PrunerModule, config: PrunerTrainingConfig, *, train_epoch: Call
         base.setdefault(k, v)
     meta = None
     # seconds spent training so far; a state saved mid-epoch also counts that epoch's trained groups
-    train_seconds = (st["train_seconds"] if st is not None and "train_seconds" in st
-                     else history[-1].get("train_seconds", 0.0) if history else 0.0)
+    # (a state saved before it recorded them: the last finished epoch's count)
+    train_seconds = history[-1].get("train_seconds", 0.0) if history else 0.0
+    train_seconds = st.get("train_seconds", train_seconds) if st is not None else train_seconds
     t_start = time.time()
 
     def save_state(done_epochs: int, mid: Optional[dict]) -> None:
