@@ -250,9 +250,10 @@ def reuse_cost_table(folder: Path) -> str:
     return "\n".join(rows) + "\n"
 
 
+TABLE7_STEPS = "file:{p}_steps_0.93"
 TABLE7_ROWS = (("dense", "dense"), ("DDIM-7 (leading)", "ddim:7"), ("DDIM-3 (leading)", "ddim:3"),
                ("DDIM-3 (trailing)", "ddim:3:trailing"), ("DPM-Solver++-3", "dpm:3"), ("DPM-Solver++-7", "dpm:7"),
-               ("searched static steps", "file:{p}_steps_0.93"),
+               ("searched static steps", TABLE7_STEPS),
                ("forward only (uniform static)", "uniform:0.93:forward"),
                ("timestep only (uniform static)", "uniform:0.93:timestep"),
                ("rollout only (uniform static: slots from the episode's first call)", "uniform:0.93:rollout"),
@@ -289,36 +290,70 @@ def _pruner_cost(rs: list[dict], checkpoint: Path | None = None) -> str:
     return note
 
 
+def _table7_policies(runs: dict) -> list[str]:
+    """Policies with Table 7 runs (reference-recipe pruners or the rotating rollout plan), test seeds only."""
+    return sorted({pol for pol, m in runs if ("_reference_" in m or m == "rotating:0.93:rollout")
+                   and not pol.endswith("validation")})
+
+
+def _table7_method(pol: str, pattern: str) -> str:
+    """A Table 7 row's method name for a policy (``{p}``: the policy's checkpoint slug)."""
+    return pattern.format(p=pol.replace(" (", "-").rstrip(")"))
+
+
+def _paired_cell(rs: list[dict], other: list[dict]) -> str:
+    """The paired difference of ``rs`` to ``other`` on their shared episodes: mean best coverage where
+    the runs score coverage (t-interval), else success (Newcombe interval, discordant counts, sign test)."""
+    if rs[0].get("mean_max_coverage") is not None:
+        d = paired_score_difference(rs, other)
+        return "-" if d is None else f"{d[0]:+.3f} ({d[1]:+.3f}, {d[2]:+.3f})"
+    return paired_vs_dense(rs, other)
+
+
 def table7(folder: Path, pruners: Path = REPO / "checkpoints" / "pruners") -> str:
     """The paper's Table 7 shape at 93% (recipes/table7.sh): per policy with its static direction rows
     or reference-recipe pruners, on the test seeds, the score and the paired difference to dense on the
     same episodes: success, or for Push-T (whose policies rarely succeed) the mean best coverage.
     ``pruners``: where the pruner rows' checkpoints are (a cell flags results of replaced weights)."""
     runs = complete_runs(folder)
-    policies = sorted({pol for pol, m in runs if ("_reference_" in m or m == "rotating:0.93:rollout")
-                       and not pol.endswith("validation")})
+    policies = _table7_policies(runs)
     if not policies:
         return "No policy has Table 7 runs yet (recipes/table7.sh).\n"
     rows = ["| row | " + " | ".join(policies) + " |", "|---|" + "---|" * len(policies)]
     for label, pattern in TABLE7_ROWS:
         cells = []
         for pol in policies:
-            slug = pol.replace(" (", "-").rstrip(")")
-            method = pattern.format(p=slug)
+            method = _table7_method(pol, pattern)
             rs, dense = runs.get((pol, method)), runs.get((pol, "dense"), [])
             if not rs:
                 cells.append("-")
                 continue
             ckpt = pruners / method.removeprefix("pruner:") if method.startswith("pruner:") else None
-            if rs[0].get("mean_max_coverage") is not None:
-                cov, n = pooled(rs, "mean_max_coverage")
-                d = None if pattern == "dense" else paired_score_difference(rs, dense)
-                cells.append(f"coverage {cov:.3f} ({n})" + ("" if d is None else f"; {d[0]:+.3f} ({d[1]:+.3f}, {d[2]:+.3f})")
-                             + _pruner_cost(rs, ckpt))
-                continue
-            rate, n = pooled(rs)
-            paired = "" if pattern == "dense" else "; " + paired_vs_dense(rs, dense).split(" on ")[0]
-            cells.append(f"{rate:.2f} ({n}){paired}{_pruner_cost(rs, ckpt)}")
+            coverage = rs[0].get("mean_max_coverage") is not None
+            rate, n = pooled(rs, "mean_max_coverage" if coverage else "success_rate")
+            paired = "" if pattern == "dense" else "; " + _paired_cell(rs, dense).split(" on ")[0]
+            cells.append(("coverage " if coverage else "") + f"{rate:.{3 if coverage else 2}f} ({n}){paired}"
+                         + _pruner_cost(rs, ckpt))
+        rows.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(rows) + "\n"
+
+
+def table7_vs_steps(folder: Path) -> str:
+    """Table 7's sparse rows against the searched static steps on the same test episodes: the paired
+    difference (success: with the episodes and the discordant counts, only the steps / only this row
+    solved, and the sign test; Push-T: mean best coverage)."""
+    runs = complete_runs(folder)
+    policies = [p for p in _table7_policies(runs) if (p, _table7_method(p, TABLE7_STEPS)) in runs]
+    if not policies:
+        return "No Table 7 policy has searched-steps runs yet (recipes/table7.sh).\n"
+    rows = ["| row | " + " | ".join(policies) + " |", "|---|" + "---|" * len(policies)]
+    for label, pattern in TABLE7_ROWS:
+        if pattern in ("dense", TABLE7_STEPS) or not pattern.startswith(("pruner:", "file:", "uniform:", "rotating:")):
+            continue
+        cells = []
+        for pol in policies:
+            rs = runs.get((pol, _table7_method(pol, pattern)))
+            cells.append(_paired_cell(rs, runs[(pol, _table7_method(pol, TABLE7_STEPS))]) if rs else "-")
         rows.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(rows) + "\n"
 
@@ -753,7 +788,8 @@ def main() -> None:
                              "agreement": agreement_table(robot), "headroom": headroom_table(robot),
                              "rollout-age": rollout_age_table(robot),
                              "runs": robot_table(robot)})
-    fill(docs / "testbed.md", {"steps": steps_table(robot), "table7": table7(robot), "operators": operators_table(REPO / "results" / "experts"),
+    fill(docs / "testbed.md", {"steps": steps_table(robot), "table7": table7(robot),
+                                "table7-vs-steps": table7_vs_steps(robot), "operators": operators_table(REPO / "results" / "experts"),
                                 "push-operators": push_operators_table(REPO / "results" / "experts"),
                                 "coverage": coverage_table(robot), "sample-spread": sample_spread_table(robot),
                                 "pruner-training": pruner_training_table(REPO / "checkpoints" / "pruners")})

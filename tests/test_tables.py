@@ -359,3 +359,38 @@ def test_sample_spread_table_lists_every_method_of_a_run(tmp_path):
     rows = tables.sample_spread_table(tmp_path).strip().splitlines()[2:]
     assert rows == ["| pusht (pusht_mh_dpt_17k) | `dense` | 10 x 4 | 0.1000 | 0.0000 | 0.2000 | `abcdef0123` |",
                     "| pusht (pusht_mh_dpt_17k) | `dpm:7` | 10 x 4 | 0.0500 | 0.1000 | 0.1500 | `abcdef0123` |"]
+
+
+def test_table7_vs_steps_pairs_each_sparse_row_with_the_searched_steps_on_shared_episodes(tmp_path):
+    """The second Table 7 view: each sparse row minus the searched static steps on the same episodes,
+    with the discordant counts in the order only-the-steps / only-this-row."""
+    import tables
+    from helpers import write_coverage_run
+
+    def write(method, successes):
+        eps = [{"seed": 100000 + i, "success": bool(x)} for i, x in enumerate(successes)]
+        (tmp_path / f"{method.replace(':', '-')}.json").write_text(json.dumps(
+            {"task": "lift", "checkpoint": "checkpoints/lift_mh_dpt", "method": method, "episodes_requested": len(eps),
+             "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
+             "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps}))
+
+    prior = "pruner:lift-lift_mh_dpt_reference_prior_0.93"
+    write("dense", [1, 1, 1, 1, 1])
+    write(prior, [1, 0, 0, 1, 1])
+    assert "No Table 7 policy" in tables.table7_vs_steps(tmp_path)  # no searched steps to pair with
+    write("file:lift-lift_mh_dpt_steps_0.93", [1, 1, 1, 0, 1])
+    header, _, *rows = tables.table7_vs_steps(tmp_path).strip().splitlines()
+    assert header == "| row | lift (lift_mh_dpt) |"
+    row = {r.split(" | ")[0][2:]: r.split(" | ")[1].rstrip(" |") for r in rows}
+    assert "dense" not in row and "searched static steps" not in row and "DDIM-7 (leading)" not in row
+    assert row["omni (pruner, from the searched prior)"].startswith("-0.200 (")
+    assert row["omni (pruner, from the searched prior)"].endswith(" on 5; 2 / 1, p = 1")
+    assert row["omni (pruner, scratch)"] == "-"
+    coverage = tmp_path / "pusht"
+    coverage.mkdir()
+    write_coverage_run(coverage, "dense", [0.5, 0.6, 0.7])
+    write_coverage_run(coverage, "rotating:0.93:rollout", [0.2, 0.3, 0.5])
+    write_coverage_run(coverage, "file:pusht-pusht_mh_dpt_17k_steps_0.93", [0.4, 0.5, 0.6])
+    rows = tables.table7_vs_steps(coverage).strip().splitlines()[2:]
+    cell = {r.split(" | ")[0][2:]: r.split(" | ")[1].rstrip(" |") for r in rows}["rollout only (rotating static: slots refreshed)"]
+    assert cell.startswith("-0.167 (")
