@@ -17,7 +17,7 @@ from typing import Optional, Sequence
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, file_sha256, write_atomic  # noqa: E402
-from common.stats import paired_score_difference, paired_vs_dense, policy_of, pooled  # noqa: E402
+from common.stats import paired_score_difference, paired_success_difference, policy_of, pooled  # noqa: E402
 from common import frontier  # noqa: E402
 from robot_suite.tasks import TASKS  # noqa: E402
 from tts.io import checkpoint_pair  # noqa: E402
@@ -67,7 +67,7 @@ def summary_table(folder: Path) -> str:
         sparsity = info.get("sparsity_non_dense_calls", info.get("sparsity_all_calls", 0))
         std = f"{(sum((x - _mean(sr)) ** 2 for x in sr) / (len(sr) - 1)) ** 0.5:.2f}" if len(sr) > 1 else "-"
         first = ", ".join(str(r["provenance"]["seeds"][0]) for r in rs)
-        paired = "-" if method == "dense" else paired_vs_dense(rs, runs.get((task, "dense"), []))
+        paired = "-" if method == "dense" else paired_success_difference(rs, runs.get((task, "dense"), []))
         rows.append(f"| {task} | `{method}` | {_mean(sr):.2f} | {std} | {len(rs)}: {first} | {sparsity:.3f} | {paired} |")
     return "\n".join(rows) + "\n"
 
@@ -307,7 +307,7 @@ def _paired_cell(rs: list[dict], other: list[dict]) -> str:
     if rs[0].get("mean_max_coverage") is not None:
         d = paired_score_difference(rs, other)
         return "-" if d is None else f"{d[0]:+.3f} ({d[1]:+.3f}, {d[2]:+.3f})"
-    return paired_vs_dense(rs, other)
+    return paired_success_difference(rs, other)
 
 
 def table7(folder: Path, pruners: Path = REPO / "checkpoints" / "pruners") -> str:
@@ -513,7 +513,7 @@ def visuomotor_table(folder: Path, latency_folder: Optional[Path] = None) -> str
         policy, method = key
         rs = runs.get(key, [])
         score = "-" if not rs else "{:.2f} ({})".format(*pooled(rs))
-        versus = "-" if not rs or method == "dense" else paired_vs_dense(rs, runs.get((policy, "dense"), []))
+        versus = "-" if not rs or method == "dense" else paired_success_difference(rs, runs.get((policy, "dense"), []))
         latency_rows = timed[key]["rows"] if key in timed else [None]
         for row in latency_rows:
             if row is None:
@@ -716,7 +716,7 @@ def headline_robot(folder: Path) -> str:
             if not rs:
                 continue
             success, n = pooled(rs)
-            paired = "-" if method == "dense" else paired_vs_dense(rs, runs.get((task, "dense"), [])).split(" on ")[0]
+            paired = "-" if method == "dense" else paired_success_difference(rs, runs.get((task, "dense"), [])).split(" on ")[0]
             sp = speed.get((task, method), {})
             sp_text = " / ".join(f"{sp[b]:.2f}x" if b in sp else "-" for b in (1, 28)) if sp else "-"
             lc = rs[0].get("tts", {}).get("last_call", {})

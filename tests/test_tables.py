@@ -7,7 +7,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
-from common.stats import newcombe_paired, paired_vs_dense, sign_test_p  # noqa: E402
+from common.stats import newcombe_paired, paired_success_difference, sign_test_p  # noqa: E402
 
 
 def run(outcomes: dict[int, bool]) -> dict:
@@ -17,7 +17,7 @@ def run(outcomes: dict[int, bool]) -> dict:
 def test_paired_difference_counts_discordant_episodes_on_common_seeds_only():
     dense = [run({1: True, 2: True, 3: False, 4: True})]
     mine = [run({1: True, 2: False}), run({3: True, 4: False, 99: True})]  # seed 99: no dense episode
-    text = paired_vs_dense(mine, dense)
+    text = paired_success_difference(mine, dense)
     assert text.startswith("-0.250 (") and text.endswith("on 4; 2 / 1, p = 1")
     lo, hi = (float(x) for x in text.split("(")[1].split(")")[0].split(", "))
     assert lo < -0.25 < hi
@@ -25,13 +25,13 @@ def test_paired_difference_counts_discordant_episodes_on_common_seeds_only():
 
 def test_identical_outcomes_give_a_symmetric_interval_that_narrows_with_episodes_and_no_overlap_is_reported():
     dense = [run({1: True, 2: False})]
-    assert paired_vs_dense([run({1: True, 2: False})], dense) == "+0.000 (-0.573, +0.573) on 2; 0 / 0, p = 1"
+    assert paired_success_difference([run({1: True, 2: False})], dense) == "+0.000 (-0.573, +0.573) on 2; 0 / 0, p = 1"
     # all 150 solved by both: not a zero-width interval (the normal approximation's), about +-0.025
     diff, lo, hi = newcombe_paired(150, 0, 0, 0)
     assert diff == 0 and lo == -hi and 0.02 < hi < 0.03
-    assert paired_vs_dense([run({5: True})], dense) == "no common episodes"
+    assert paired_success_difference([run({5: True})], dense) == "no common episodes"
     with pytest.raises(KeyError):
-        paired_vs_dense([{"episodes": [{"seed": 1}]}], dense)
+        paired_success_difference([{"episodes": [{"seed": 1}]}], dense)
 
 
 def test_newcombe_interval_moves_with_the_discordant_pairs_and_stays_in_range():

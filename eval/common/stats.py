@@ -9,7 +9,7 @@ import math
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["VALIDATION_SEEDS", "policy_of", "paired_counts", "paired_vs_dense", "wilson", "newcombe_paired",
+__all__ = ["VALIDATION_SEEDS", "policy_of", "paired_counts", "paired_success_difference", "wilson", "newcombe_paired",
            "sign_test_p", "mean_interval", "paired_score_difference", "pooled"]
 
 VALIDATION_SEEDS = 400000  # first seeds from here on are validation episodes (recipes/steps_matter.sh)
@@ -49,11 +49,12 @@ def paired_counts(runs: list[dict], other: list[dict]) -> tuple[int, int, int, i
     return both, only_mine, only_ref, len(common) - both - only_mine - only_ref
 
 
-def paired_vs_dense(runs: list[dict], dense: list[dict]) -> str:
-    """Success difference to dense on the test episodes both were run on (same env seed = same initial
-    state): the paired difference with Newcombe's score interval (95%), the discordant counts (only
-    dense / only this method solved) and the exact two-sided sign-test p-value on those counts."""
-    both, only_mine, only_ref, neither = paired_counts(runs, dense)
+def paired_success_difference(runs: list[dict], other: list[dict]) -> str:
+    """Success difference of ``runs`` to ``other`` (dense, or any baseline) on the episodes both were
+    run on (same env seed = same initial state): the paired difference with Newcombe's score interval
+    (95%), the discordant counts (only ``other`` / only ``runs`` solved) and the exact two-sided
+    sign-test p-value on those counts."""
+    both, only_mine, only_ref, neither = paired_counts(runs, other)
     n = both + only_mine + only_ref + neither
     if not n:
         return "no common episodes"
