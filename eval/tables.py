@@ -348,7 +348,7 @@ def table7_vs_steps(folder: Path) -> str:
         return "No Table 7 policy has searched-steps runs yet (recipes/table7.sh).\n"
     rows = ["| row | " + " | ".join(policies) + " |", "|---|" + "---|" * len(policies)]
     for label, pattern in TABLE7_ROWS:
-        if pattern in ("dense", TABLE7_STEPS) or not pattern.startswith(("pruner:", "file:", "uniform:", "rotating:")):
+        if pattern == TABLE7_STEPS or not pattern.startswith(("pruner:", "file:", "uniform:", "rotating:")):  # sparse rows only
             continue
         cells = []
         for pol in policies:
