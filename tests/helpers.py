@@ -14,6 +14,20 @@ def run(model, args):
         return as_tensor(model(*args)).clone()
 
 
+def write_success_run(folder, method: str, successes: list, checkpoint: str = "checkpoints/lift_mh_dpt",
+                      first_seed: int = 100000, **extra) -> None:
+    """An eval/robot.py result file of a Lift run in ``folder``: one episode per ``successes`` value,
+    seeds from ``first_seed``; ``extra`` adds or replaces fields."""
+    import json
+    from pathlib import Path
+
+    eps = [{"seed": first_seed + i, "success": bool(x)} for i, x in enumerate(successes)]
+    doc = {"task": "lift", "checkpoint": checkpoint, "method": method, "episodes_requested": len(eps),
+           "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
+           "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps, **extra}
+    (Path(folder) / f"{method.replace(':', '-')}_{first_seed}.json").write_text(json.dumps(doc))
+
+
 def write_coverage_run(folder, method: str, coverage: list[float], checkpoint: str = "checkpoints/pusht_mh_dpt_17k",
                        first_seed: int = 100000, **extra) -> None:
     """An eval/robot.py result file of a Push-T run in ``folder``: one episode per ``coverage`` value

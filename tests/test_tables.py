@@ -75,17 +75,12 @@ def test_runs_of_other_policies_and_validation_seeds_never_pool_with_the_bundled
 
 
 def test_table7_rows_pool_test_seeds_per_policy_and_skip_validation(tmp_path):
-    import json
-
     import tables
+    from helpers import write_success_run
 
-    def write(method, successes, seed, ckpt="checkpoints/lift_mh_dpt", macs_pruner=0.0, pruner=None):
-        eps = [{"seed": seed + i, "success": bool(x)} for i, x in enumerate(successes)]
-        doc = {"task": "lift", "checkpoint": ckpt, "method": method, "episodes_requested": len(eps),
-               "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
-               "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps,
-               "tts": {"last_call": {"macs_dense": 2e9, "macs_pruner": macs_pruner}}, "pruner_metadata": pruner}
-        (tmp_path / f"{method.replace(':', '-')}_{seed}.json").write_text(json.dumps(doc))
+    def write(method, successes, seed, macs_pruner=0.0, pruner=None):
+        write_success_run(tmp_path, method, successes, first_seed=seed, pruner_metadata=pruner,
+                          tts={"last_call": {"macs_dense": 2e9, "macs_pruner": macs_pruner}})
 
     assert "No policy" in tables.table7(tmp_path)
     write("dense", [1, 1, 1, 0], 100000)
@@ -365,14 +360,10 @@ def test_table7_vs_steps_pairs_each_sparse_row_with_the_searched_steps_on_shared
     """The second Table 7 view: each sparse row minus the searched static steps on the same episodes,
     with the discordant counts in the order only-the-steps / only-this-row."""
     import tables
-    from helpers import write_coverage_run
+    from helpers import write_coverage_run, write_success_run
 
     def write(method, successes):
-        eps = [{"seed": 100000 + i, "success": bool(x)} for i, x in enumerate(successes)]
-        (tmp_path / f"{method.replace(':', '-')}.json").write_text(json.dumps(
-            {"task": "lift", "checkpoint": "checkpoints/lift_mh_dpt", "method": method, "episodes_requested": len(eps),
-             "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
-             "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps}))
+        write_success_run(tmp_path, method, successes)
 
     prior = "pruner:lift-lift_mh_dpt_reference_prior_0.93"
     write("dense", [1, 1, 1, 1, 1])
