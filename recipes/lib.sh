@@ -12,21 +12,6 @@ state_dir() { echo "checkpoints/in_progress/$1"; }
 # finish_state NAME: drop NAME's resumable state once its training has written its final checkpoint.
 finish_state() { rm -rf "$(state_dir "$1")"; }
 
-# with_jemalloc CMD...: run CMD with jemalloc as its allocator where the system has it (Debian/Ubuntu:
-# apt install libjemalloc2), purging freed pages never. Under glibc's malloc a pruner training on the
-# CPU hands its autograd buffers back to the kernel after every step and page-faults them in again,
-# about a fifth of its time in the kernel; jemalloc keeps them. Results do not change (only where the
-# memory comes from). JEMALLOC=0 runs CMD as it is.
-with_jemalloc() {
-  local lib
-  lib=$(PATH=$PATH:/sbin:/usr/sbin ldconfig -p 2>/dev/null | awk '/libjemalloc\.so\.2 /{print $NF; exit}')
-  if [ -n "$lib" ] && [ "${JEMALLOC:-1}" != 0 ]; then
-    LD_PRELOAD="$lib${LD_PRELOAD:+:$LD_PRELOAD}" MALLOC_CONF="${MALLOC_CONF:-dirty_decay_ms:-1,muzzy_decay_ms:-1}" "$@"
-  else
-    "$@"
-  fi
-}
-
 # eval_seeds ROBOT_ARGS...: eval/robot.py on 50 test episodes for each of $SEEDS (default: the 3
 # evaluation seeds); --resume skips finished runs and continues cut-off ones; THREADS sets torch threads.
 eval_seeds() {
@@ -84,7 +69,7 @@ sys.exit(0 if training_finished(sys.argv[1]) else 1)' "checkpoints/pruners/$1.js
 # skipped when its training finished: trained); NTRAIN / NVAL (default 16) / EPOCHS set the sizes.
 train_named() {
   local name=$1; shift
-  trained "$name" || { with_jemalloc python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
+  trained "$name" || { python eval/train_pruner.py --trajectories "$TRAJ" --checkpoint "$CKPT" \
       --out "checkpoints/pruners/$name" --n-train "$NTRAIN" --n-val "${NVAL:-16}" --epochs "$EPOCHS" --paired --threads "${THREADS:-2}" \
       --run-dir "$(state_dir "$name")" --resume $(all_episodes) "$@" && finish_state "$name"; }
 }

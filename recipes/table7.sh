@@ -73,7 +73,7 @@ loss_space=$([ "$TASK" = pusht ] && echo normalized || echo raw)
 precision=${PRECISION:-$({ [ -n "${DEVICE:-}" ] || grep -qE 'avx512_bf16|amx_bf16' /proc/cpuinfo; } && echo bfloat16 || echo float32)}
 reference_pruner() {  # NAME DIRECTIONS [ARGS...]: the reference recipe on 96 train / 16 validation episodes
   local name=$1 dirs=$2; shift 2
-  trained "$name" || { with_jemalloc python eval/train_pruner.py --recipe reference --trajectories "$TRAJ" \
+  trained "$name" || { python eval/train_pruner.py --recipe reference --trajectories "$TRAJ" \
       --checkpoint "$CKPT" --out "checkpoints/pruners/$name" --directions "$dirs" --sparsity 0.93 \
       --n-train 96 --n-val 16 --precision "$precision" --loss-space "$loss_space" \
       --threads "${THREADS:-2}" ${DEVICE:+--device "$DEVICE"} \

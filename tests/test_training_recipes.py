@@ -91,29 +91,3 @@ def test_recipes_keep_training_state_where_git_tracks_it():
     if shutil.which("git") and (repo / ".git").exists():
         ignored = subprocess.run(["git", "check-ignore", "-q", f"{folder}/some_training/state.pt"], cwd=repo)
         assert ignored.returncode == 1, f"{folder} is ignored by .gitignore: its state would not survive a new checkout"
-
-
-def test_with_jemalloc_preloads_it_where_present_and_passes_the_command_through():
-    """Recipe trainings run under ``with_jemalloc``: the command, its arguments and exit status pass
-    through unchanged; jemalloc is preloaded only where the system has it and ``JEMALLOC=0`` is unset."""
-    import shutil
-    import subprocess
-    from pathlib import Path
-
-    if not shutil.which("bash"):
-        pytest.skip("needs bash")
-    lib = Path(__file__).resolve().parents[1] / "recipes" / "lib.sh"
-    define = f"eval \"$(sed -n '/^with_jemalloc() {{/,/^}}/p' {lib})\""
-
-    def run(body: str, **env: str) -> subprocess.CompletedProcess:
-        return subprocess.run(["bash", "-c", f"{define}; {body}"], capture_output=True, text=True,
-                              env={"PATH": "/usr/bin:/bin", **env})
-
-    off = run('with_jemalloc bash -c \'echo "[$LD_PRELOAD]" "$@"; exit 7\' _ "a b" c', JEMALLOC="0")
-    assert off.returncode == 7 and off.stdout.strip() == "[] a b c"
-    on = run('with_jemalloc bash -c \'echo "$LD_PRELOAD|$MALLOC_CONF"\'')
-    present = run("PATH=$PATH:/sbin:/usr/sbin ldconfig -p 2>/dev/null | grep -q 'libjemalloc\\.so\\.2 '").returncode == 0
-    if present:
-        assert "libjemalloc.so.2" in on.stdout and "dirty_decay_ms:-1" in on.stdout
-    else:
-        assert on.stdout.strip() == "|"
