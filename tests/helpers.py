@@ -14,30 +14,29 @@ def run(model, args):
         return as_tensor(model(*args)).clone()
 
 
+def _write_run(folder, task: str, method: str, eps: list, checkpoint: str, prefix: str = "", **extra) -> None:
+    """An eval/robot.py result file in ``folder`` for ``eps`` (seed, success and any other fields)."""
+    import json
+    from pathlib import Path
+
+    doc = {"task": task, "checkpoint": checkpoint, "method": method, "episodes_requested": len(eps),
+           "episodes_done": len(eps), "success_rate": sum(e["success"] for e in eps) / len(eps),
+           "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps, **extra}
+    (Path(folder) / f"{prefix}{method.replace(':', '-')}_{eps[0]['seed']}.json").write_text(json.dumps(doc))
+
+
 def write_success_run(folder, method: str, successes: list, checkpoint: str = "checkpoints/lift_mh_dpt",
                       first_seed: int = 100000, **extra) -> None:
     """An eval/robot.py result file of a Lift run in ``folder``: one episode per ``successes`` value,
     seeds from ``first_seed``; ``extra`` adds or replaces fields."""
-    import json
-    from pathlib import Path
-
     eps = [{"seed": first_seed + i, "success": bool(x)} for i, x in enumerate(successes)]
-    doc = {"task": "lift", "checkpoint": checkpoint, "method": method, "episodes_requested": len(eps),
-           "episodes_done": len(eps), "success_rate": sum(successes) / len(eps),
-           "provenance": {"seeds": [e["seed"] for e in eps]}, "episodes": eps, **extra}
-    (Path(folder) / f"{method.replace(':', '-')}_{first_seed}.json").write_text(json.dumps(doc))
+    _write_run(folder, "lift", method, eps, checkpoint, **extra)
 
 
 def write_coverage_run(folder, method: str, coverage: list[float], checkpoint: str = "checkpoints/pusht_mh_dpt_17k",
                        first_seed: int = 100000, **extra) -> None:
     """An eval/robot.py result file of a Push-T run in ``folder``: one episode per ``coverage`` value
     (best goal coverage), seeds from ``first_seed``; ``extra`` adds or replaces fields."""
-    import json
-    from pathlib import Path
-
     eps = [{"seed": first_seed + i, "success": c > 0.95, "max_coverage": c} for i, c in enumerate(coverage)]
-    doc = {"task": "pusht", "checkpoint": checkpoint, "method": method, "episodes_requested": len(eps),
-           "episodes_done": len(eps), "success_rate": sum(e["success"] for e in eps) / len(eps),
-           "mean_max_coverage": sum(coverage) / len(coverage), "provenance": {"seeds": [e["seed"] for e in eps]},
-           "episodes": eps, **extra}
-    (Path(folder) / f"pusht_{method.replace(':', '-')}_{first_seed}.json").write_text(json.dumps(doc))
+    _write_run(folder, "pusht", method, eps, checkpoint, prefix="pusht_",
+               **{"mean_max_coverage": sum(coverage) / len(coverage), **extra})
